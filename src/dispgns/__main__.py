@@ -1,0 +1,5 @@
+import sys
+
+from dispgns.cli import main
+
+sys.exit(main())

@@ -1,0 +1,59 @@
+"""The ``dispgns`` command line: the only place that parses arguments and prints.
+
+Each subcommand lives in its own module exposing ``register(subparsers)``,
+which adds its parser and sets ``func`` to a callable taking the parsed
+arguments and returning an exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Subcommand modules, in the order shown by --help.
+_COMMANDS = ("demo", "generate", "import_npz", "train", "evaluate", "render")
+
+
+class CLIError(Exception):
+    """A user-facing error: printed as one message, exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from dispgns import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="dispgns",
+        description="Learned simulation of finite-size particle suspensions (graph network simulator).",
+    )
+    parser.add_argument("--version", action="version", version=f"dispgns {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _COMMANDS:
+        try:
+            module = importlib.import_module(f"dispgns.cli.{name}")
+        except ModuleNotFoundError as error:
+            if error.name == f"dispgns.cli.{name}":
+                continue
+            raise
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except CLIError as error:
+        print(f"dispgns {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"dispgns {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

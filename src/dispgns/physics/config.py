@@ -1,0 +1,90 @@
+"""Parameters of the ground-truth suspension model (SI units throughout)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsConfig:
+    """The sedimenting-disk model of Hashemi & Izadkhah (2025), in SI units.
+
+    Disks of radius ``a_i`` and thickness ``thickness`` (D = 2) or spheres
+    (D = 3) move in the box ``[-box_half_size, box_half_size]^D`` under buoyant
+    weight (along the last axis), linear drag ``-drag * a_i * v_i`` and the
+    truncated Lennard-Jones pair force, integrated with explicit Euler.
+
+    Attributes:
+      thickness: disk thickness ``s`` in m (only used for D = 2 volumes).
+      density: particle density ``rho`` in kg/m^3.
+      fluid_density: liquid density ``rho_f`` in kg/m^3.
+      gravity: ``g`` in m/s^2. The authors' generator uses 9.8066 (the paper
+        prints 9.81).
+      box_half_size: ``L`` in m; walls at ``+-L`` on every axis.
+      drag: ``k`` in kg/(m s); drag force ``-k a_i v_i``.
+      lj_exponent: ``p``; ``U(r) = 4 U0 [(sigma/r)^(2p) - (sigma/r)^p]``.
+      well_depth_coeff: ``U0 = well_depth_coeff * sigma^2`` (J, with sigma in m).
+      min_distance_coeff: ``r_m = min_distance_coeff * min(a_i, a_j)``; below
+        ``r_m`` the pair force keeps its magnitude at ``r_m``.
+      restitution: ``gamma``; a wall collision scales the whole velocity by
+        ``sqrt(gamma)``.
+      dt: Euler step in s.
+      cutoff: ``None`` for the exact model (every pair interacts, as the
+        authors do), or an interaction cut-off distance in m. With a finite
+        cut-off, pairs are found with a jax-md cell list and the cost grows
+        linearly with the number of particles.
+      neighbor_skin: extra distance in m added to ``cutoff`` when building
+        neighbour lists, so that lists are rebuilt only after some particle
+        moved by more than half of it. Unused when ``cutoff`` is ``None``.
+    """
+
+    thickness: float = 2e-3
+    density: float = 2300.0
+    fluid_density: float = 1000.0
+    gravity: float = 9.8066
+    box_half_size: float = 0.1
+    drag: float = 1.25
+    lj_exponent: int = 6
+    well_depth_coeff: float = 0.025
+    min_distance_coeff: float = 1.75
+    restitution: float = 0.8
+    dt: float = 1e-4
+    cutoff: float | None = None
+    neighbor_skin: float = 2e-3
+
+    def __post_init__(self):
+        positive = ("thickness", "density", "gravity", "box_half_size", "dt")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"PhysicsConfig.{name} must be a finite number > 0, got {value!r}")
+        for name in ("fluid_density", "drag", "well_depth_coeff", "min_distance_coeff"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"PhysicsConfig.{name} must be a finite number >= 0, got {value!r}")
+        if not (0.0 < self.restitution <= 1.0):
+            raise ValueError(f"PhysicsConfig.restitution must lie in (0, 1], got {self.restitution!r}")
+        if int(self.lj_exponent) != self.lj_exponent or self.lj_exponent < 1:
+            raise ValueError(f"PhysicsConfig.lj_exponent must be a positive integer, got {self.lj_exponent!r}")
+        if self.cutoff is not None and not (math.isfinite(self.cutoff) and self.cutoff > 0):
+            raise ValueError(f"PhysicsConfig.cutoff must be None or a distance > 0 in m, got {self.cutoff!r}")
+        if not (self.neighbor_skin >= 0):
+            raise ValueError(f"PhysicsConfig.neighbor_skin must be >= 0 m, got {self.neighbor_skin!r}")
+
+    def settling_speed(self, radius: float) -> float:
+        """Terminal speed (m/s) of an isolated disk of ``radius`` m (D = 2)."""
+        return (self.density - self.fluid_density) * math.pi * radius * self.thickness * self.gravity / self.drag
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "PhysicsConfig":
+        """Build a config from a mapping; unknown keys are an error."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown PhysicsConfig field(s) {unknown}; expected a subset of {sorted(known)}")
+        return cls(**values)

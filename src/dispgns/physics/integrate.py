@@ -1,0 +1,411 @@
+"""Explicit-Euler integration of the suspension: ``init``/``step`` and drivers.
+
+The state is a frozen pytree (:class:`SimState`); the step is a pure function
+of it, so it can be jitted, vmapped over trajectories, differentiated and
+scanned. Capacities (colliding particles evaluated per step, neighbour-list
+size) are static; overflowing one is detected, never silently ignored:
+
+* :func:`simulate` and :func:`simulate_batch` called with concrete arrays run
+  the trajectory in chunks, check the overflow flags after each chunk, grow
+  the capacity outside ``jit`` and recompute the chunk;
+* called under a JAX transformation (``jit``, ``vmap``, ``grad``) they use the
+  exact all-particle collision path, which cannot overflow.
+
+Units are SI: positions in m, velocities in m/s, radii in m, time in s.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax_md import dataclasses as md_dataclasses
+from jax_md import partition, space
+
+from dispgns.physics.config import PhysicsConfig
+from dispgns.physics.forces import external_force, interaction_force, particle_mass
+from dispgns.physics.walls import resolve_walls
+
+
+@md_dataclasses.dataclass
+class SimState:
+    """State of a suspension between Euler steps (a pytree).
+
+    Attributes:
+      position: ``(N, D)`` centres in m.
+      velocity: ``(N, D)`` in m/s.
+      radius: ``(N,)`` in m.
+      mask: ``(N,)`` bool, ``False`` for padding particles; they do not move,
+        exert no force and never collide.
+      mass: ``(N,)`` kg, and ``external``: ``(N, D)`` buoyant weight in N,
+        precomputed once because they do not change.
+      neighbors: jax-md dense neighbour list (``config.cutoff`` set) or ``None``.
+      wall_hits: ``(2 D,)`` int32, cumulative wall crossings per wall (right,
+        left, top, bottom in 2-D; a corner crossing counts on both walls).
+      corner_events: int32, cumulative multi-axis crossings.
+      overflow: bool, a step needed more colliding-particle capacity than it
+        had; the state is then wrong and must be recomputed.
+      step: int32, Euler steps taken.
+    """
+
+    position: jnp.ndarray
+    velocity: jnp.ndarray
+    radius: jnp.ndarray
+    mask: jnp.ndarray
+    mass: jnp.ndarray
+    external: jnp.ndarray
+    neighbors: partition.NeighborList | None
+    wall_hits: jnp.ndarray
+    corner_events: jnp.ndarray
+    overflow: jnp.ndarray
+    step: jnp.ndarray
+
+
+def _far_away_positions(count: int, dim: int, spacing: float, box_half_size: float, dtype) -> jnp.ndarray:
+    """Positions for padding particles: outside the box, farther than ``spacing`` apart."""
+    offsets = (3.0 * box_half_size + spacing * jnp.arange(1, count + 1, dtype=dtype))[:, None]
+    return jnp.broadcast_to(offsets, (count, dim)).astype(dtype)
+
+
+def _park_padding(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfig) -> jnp.ndarray:
+    """Move padding particles far outside the box so neighbour lists never pair them."""
+    if config.cutoff is None:
+        return position
+    n, dim = position.shape
+    spacing = 1.01 * (config.cutoff + config.neighbor_skin)
+    parked = _far_away_positions(n, dim, spacing, config.box_half_size, position.dtype)
+    return jnp.where(mask[:, None], position, parked)
+
+
+@functools.lru_cache(maxsize=None)
+def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFns:
+    """jax-md cell-list neighbour function for ``config.cutoff`` (cached per config).
+
+    The list radius is ``cutoff + neighbor_skin`` and it is rebuilt once some
+    particle moved by more than a quarter of the skin, which leaves room for
+    the wall contact points (within one Euler displacement of the particle).
+    Positions are passed shifted by ``+L`` so that they lie in ``[0, 2L]``
+    (the cell list hashes non-negative coordinates).
+    """
+    if config.cutoff is None:
+        raise ValueError("neighbour lists need PhysicsConfig.cutoff to be set (got None = all pairs)")
+    displacement, _ = space.free()
+    half_skin = 0.5 * config.neighbor_skin
+    # Padding particles are parked beyond 3L; the cell grid only needs to cover
+    # the box, jax-md wraps outside cells and the distance test rejects them.
+    box = 2.0 * config.box_half_size
+    return partition.neighbor_list(
+        displacement,
+        box,
+        r_cutoff=config.cutoff + half_skin,
+        dr_threshold=half_skin,
+        capacity_multiplier=1.25,
+        format=partition.NeighborListFormat.Dense,
+    )
+
+
+def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = None):
+    """The model's explicit-Euler integrator as a pair of pure functions.
+
+    Args:
+      config: physics parameters (static).
+      collision_capacity: static; how many wall-colliding particles per step
+        get their contact-point force evaluated. ``None`` evaluates all N
+        (exact, can never overflow, about twice the cost of a step without
+        collisions); a small number is much cheaper and sets
+        ``state.overflow`` when exceeded.
+
+    Returns:
+      ``(init_fn, step_fn)``:
+
+      * ``init_fn(position, velocity, radius, mask=None, neighbors=None)``
+        builds a :class:`SimState`. With ``config.cutoff`` set, pass a
+        neighbour list allocated outside ``jit`` by
+        ``neighbor_fn_for(config, D).allocate(position + L)``.
+      * ``step_fn(state)`` advances one Euler step of ``config.dt`` seconds.
+    """
+
+    def init_fn(position, velocity, radius, mask=None, neighbors=None) -> SimState:
+        position = jnp.asarray(position)
+        dtype = position.dtype
+        velocity = jnp.asarray(velocity, dtype)
+        radius = jnp.asarray(radius, dtype)
+        n, dim = position.shape
+        mask = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
+        if config.cutoff is not None and neighbors is None:
+            raise ValueError(
+                "PhysicsConfig.cutoff is set: pass neighbors=neighbor_fn_for(config, D).allocate(position + L)"
+            )
+        position = _park_padding(position, mask, config)
+        velocity = jnp.where(mask[:, None], velocity, 0.0)
+        # Padding radii are replaced by a harmless positive value.
+        radius = jnp.where(mask, radius, jnp.max(jnp.where(mask, radius, 0.0)))
+        return SimState(
+            position=position,
+            velocity=velocity,
+            radius=radius,
+            mask=mask,
+            mass=particle_mass(radius, config, dim),
+            external=external_force(radius, config, dim),
+            neighbors=neighbors,
+            wall_hits=jnp.zeros((2 * dim,), jnp.int32),
+            corner_events=jnp.zeros((), jnp.int32),
+            overflow=jnp.zeros((), bool),
+            step=jnp.zeros((), jnp.int32),
+        )
+
+    def step_fn(state: SimState) -> SimState:
+        x, v, a, mask = state.position, state.velocity, state.radius, state.mask
+        n = x.shape[0]
+        neighbors = state.neighbors
+        neighbor_idx = None
+        if neighbors is not None:
+            neighbors = neighbors.update(x + config.box_half_size)
+            neighbor_idx = neighbors.idx
+
+        def force_at(query, query_index):
+            return interaction_force(query, query_index, x, a, mask, config, neighbor_idx)
+
+        start_force = force_at(x, jnp.arange(n))
+        inv_mass = (1.0 / state.mass)[:, None]
+        drag = (config.drag * a)[:, None]
+        euler_velocity = v + config.dt * inv_mass * (state.external - drag * v + start_force)
+        euler_position = x + config.dt * v
+        walls = resolve_walls(
+            x, v, euler_position, euler_velocity, start_force, a, state.mass, state.external,
+            mask, config, force_at, collision_capacity,
+        )
+        select = mask[:, None]
+        return state.set(
+            position=jnp.where(select, walls.position, x),
+            velocity=jnp.where(select, walls.velocity, v),
+            neighbors=neighbors,
+            wall_hits=state.wall_hits + walls.wall_hits.astype(jnp.int32),
+            corner_events=state.corner_events + walls.corner_events.astype(jnp.int32),
+            overflow=state.overflow | walls.overflow,
+            step=state.step + 1,
+        )
+
+    return init_fn, step_fn
+
+
+def _advance_frames(state: SimState, config: PhysicsConfig, n_frames: int, save_every: int, collision_capacity):
+    """Run ``n_frames * save_every`` steps; return the final state and every frame's (x, v)."""
+    _, step_fn = euler_integrator(config, collision_capacity=collision_capacity)
+
+    def frame(state, _):
+        state = lax.fori_loop(0, save_every, lambda _, s: step_fn(s), state)
+        return state, (state.position, state.velocity)
+
+    return lax.scan(frame, state, None, length=n_frames)
+
+
+_advance_frames_batch_jit = jax.jit(
+    jax.vmap(_advance_frames, in_axes=(0, None, None, None, None)), static_argnums=(1, 2, 3, 4)
+)
+
+
+def _is_traced(*arrays) -> bool:
+    return any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def _neighbor_overflow(neighbors) -> bool:
+    if neighbors is None:
+        return False
+    return bool(np.any(np.asarray(neighbors.did_buffer_overflow)))
+
+
+def _default_collision_capacity(n: int) -> int:
+    return int(min(n, max(16, math.ceil(n / 8))))
+
+
+def _stack_frames(first: jnp.ndarray, chunks: list, axis: int) -> jnp.ndarray:
+    return jnp.concatenate([jnp.expand_dims(first, axis)] + chunks, axis=axis)
+
+
+def _check_inputs(x0, v0, radius, mask, batched: bool):
+    lead = 3 if batched else 2
+    x0 = jnp.asarray(x0)
+    if x0.ndim != lead:
+        raise ValueError(f"x0 must have shape {'(B, N, D)' if batched else '(N, D)'}, got {x0.shape}")
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(jnp.float32)
+    v0 = jnp.asarray(v0, x0.dtype)
+    radius = jnp.asarray(radius, x0.dtype)
+    if v0.shape != x0.shape:
+        raise ValueError(f"v0 must have the shape of x0 {x0.shape}, got {v0.shape}")
+    if radius.shape != x0.shape[:-1]:
+        raise ValueError(f"radius must have shape {x0.shape[:-1]}, got {radius.shape}")
+    if mask is None:
+        mask = jnp.ones(x0.shape[:-1], bool)
+    mask = jnp.asarray(mask, bool)
+    if mask.shape != x0.shape[:-1]:
+        raise ValueError(f"mask must have shape {x0.shape[:-1]}, got {mask.shape}")
+    return x0, v0, radius, mask
+
+
+def simulate(
+    x0,
+    v0,
+    radius,
+    config: PhysicsConfig = PhysicsConfig(),
+    *,
+    n_frames: int,
+    save_every: int = 15,
+    mask=None,
+    return_velocity: bool = False,
+    collision_capacity: int | None | str = "auto",
+    chunk_frames: int = 50,
+):
+    """Simulate one trajectory and return its saved frames.
+
+    Args:
+      x0: ``(N, D)`` initial centres in m, inside ``[-L + a_i, L - a_i]``.
+      v0: ``(N, D)`` initial velocities in m/s.
+      radius: ``(N,)`` radii in m.
+      config: physics parameters (static).
+      n_frames: static; frames returned, at Euler steps
+        ``0, save_every, ..., (n_frames - 1) * save_every`` (frame 0 is ``x0``).
+      save_every: static; Euler steps between frames (15 in the paper: 1.5 ms).
+      mask: optional ``(N,)`` bool, ``False`` for padding particles; their
+        output rows are meaningless and they never affect real particles.
+      return_velocity: also return the velocities at the saved frames.
+      collision_capacity: ``"auto"`` (a small capacity, grown on overflow
+        when the inputs are concrete, exact all-particle path under a JAX
+        transformation), ``None`` (always the exact all-particle path) or an
+        int (the starting capacity).
+      chunk_frames: frames per compiled chunk between overflow checks.
+
+    Returns:
+      positions ``(n_frames, N, D)`` in m (and velocities ``(n_frames, N, D)``
+      in m/s if ``return_velocity``), in the dtype of ``x0``: float64 when
+      ``x0`` is float64 and ``jax_enable_x64`` is on, float32 otherwise.
+    """
+    x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=False)
+    if n_frames < 1 or save_every < 1:
+        raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    n, dim = x0.shape
+    if _is_traced(x0, v0, radius, mask):
+        if config.cutoff is not None:
+            raise ValueError(
+                "simulate with a finite cutoff allocates a neighbour list and needs concrete inputs; "
+                "under jit use euler_integrator with a list from neighbor_fn_for(config, D).allocate"
+            )
+        capacity = None if collision_capacity == "auto" else collision_capacity
+        init_fn, _ = euler_integrator(config, collision_capacity=capacity)
+        state = init_fn(x0, v0, radius, mask)
+        final, (xs, vs) = _advance_frames(state, config, n_frames - 1, save_every, capacity)
+        # A traced run cannot grow capacity: poison the result rather than return a wrong one.
+        poison = jnp.where(final.overflow, jnp.nan, 0.0)
+        xs, vs = xs + poison, vs + poison
+        positions = _stack_frames(x0, [xs], 0)
+        velocities = _stack_frames(v0, [vs], 0)
+        return (positions, velocities) if return_velocity else positions
+
+    xs, vs = _drive(x0[None], v0[None], radius[None], mask[None], config, n_frames, save_every,
+                    collision_capacity, chunk_frames, batched=False)
+    positions, velocities = xs[0], vs[0]
+    return (positions, velocities) if return_velocity else positions
+
+
+def simulate_batch(
+    x0,
+    v0,
+    radius,
+    mask,
+    config: PhysicsConfig = PhysicsConfig(),
+    *,
+    n_frames: int,
+    save_every: int = 15,
+    return_velocity: bool = False,
+    collision_capacity: int | None | str = "auto",
+    chunk_frames: int = 50,
+    progress: Callable[[int], None] | None = None,
+):
+    """Simulate B trajectories with different particle counts in one vmapped call.
+
+    Trajectories are padded to a common ``N``; padding particles
+    (``mask == False``) never touch real ones, so each real trajectory equals
+    its own :func:`simulate` run up to float summation order.
+
+    Args:
+      x0, v0: ``(B, N, D)`` initial positions (m) and velocities (m/s).
+      radius: ``(B, N)`` radii in m. mask: ``(B, N)`` bool.
+      progress: optional callable receiving the number of frames completed
+        after each chunk (for progress bars).
+      Other arguments as in :func:`simulate`. Must be called with concrete
+      arrays (it checks overflow between chunks).
+
+    Returns:
+      positions ``(B, n_frames, N, D)`` in m (and velocities if asked).
+    """
+    x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=True)
+    if _is_traced(x0, v0, radius, mask):
+        raise ValueError("simulate_batch checks overflow between chunks and needs concrete arrays; "
+                         "under jit, jax.vmap(simulate) is the exact alternative")
+    xs, vs = _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacity,
+                    chunk_frames, batched=True, progress=progress)
+    return (xs, vs) if return_velocity else xs
+
+
+def _allocate_neighbors(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfig, extra_capacity: int):
+    """One neighbour list per trajectory with a common capacity, stacked on axis 0."""
+    neighbor_fn = neighbor_fn_for(config, position.shape[-1])
+    shifted = [
+        _park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])
+    ]
+    lists = [neighbor_fn.allocate(x, extra_capacity=extra_capacity) for x in shifted]
+    template = max(lists, key=lambda nbrs: (nbrs.max_occupancy, nbrs.cell_list_capacity or 0))
+    updated = [neighbor_fn.update(x, template) for x in shifted]
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *updated)
+
+
+def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacity, chunk_frames,
+           batched: bool, progress=None):
+    """Chunked, overflow-checked run of B trajectories; returns (B, n_frames, N, D) arrays."""
+    if n_frames < 1 or save_every < 1:
+        raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    n = x0.shape[1]
+    if collision_capacity == "auto":
+        capacity = _default_collision_capacity(n)
+    else:
+        capacity = collision_capacity
+    neighbor_extra = 0
+    neighbors = _allocate_neighbors(x0, mask, config, neighbor_extra) if config.cutoff is not None else None
+    init_fn, _ = euler_integrator(config)
+    state = jax.vmap(init_fn)(x0, v0, radius, mask, neighbors)
+    frames_x, frames_v = [], []
+    done = 0
+    # Every chunk has the same length (one compilation); the last one may run
+    # past n_frames and its extra frames are dropped.
+    length = max(1, min(chunk_frames, n_frames - 1))
+    while done < n_frames - 1:
+        new_state, (xs, vs) = _advance_frames_batch_jit(state, config, length, save_every, capacity)
+        grow_collisions = bool(np.any(np.asarray(new_state.overflow)))
+        grow_neighbors = _neighbor_overflow(new_state.neighbors)
+        if grow_collisions or grow_neighbors:
+            if grow_collisions:
+                capacity = min(n, 2 * capacity)
+            if grow_neighbors:
+                neighbor_extra = max(8, 2 * neighbor_extra)
+                neighbors = _allocate_neighbors(state.position, mask, config, neighbor_extra)
+            else:
+                neighbors = state.neighbors
+            # Redo the chunk from its start with the larger capacity.
+            state = state.set(neighbors=neighbors, overflow=jnp.zeros_like(state.overflow))
+            continue
+        state = new_state
+        keep = min(length, n_frames - 1 - done)
+        frames_x.append(xs[:, :keep])
+        frames_v.append(vs[:, :keep])
+        done += keep
+        if progress is not None:
+            progress(done)
+    positions = _stack_frames(x0, frames_x, 1)
+    velocities = _stack_frames(v0, frames_v, 1)
+    return positions, velocities

@@ -1,0 +1,167 @@
+"""Wall collisions with contact time, restitution and the post-contact remainder.
+
+The definition is the order-independent ("vectorized") one of the reference
+model: every particle whose explicit-Euler position crosses a wall is handled
+on its own, with all other particles at their start-of-step positions. A
+particle that crosses several axes in one step meets the walls in order of
+contact time (computed from the start-of-step state; ties go to the lower
+axis), and a later wall is processed only if the result of the earlier
+collisions still crosses it. At most one collision per axis and step.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import jax.numpy as jnp
+
+from dispgns.physics.config import PhysicsConfig
+
+# force_at(query (Q, D), query_index (Q,)) -> (Q, D): interaction force in N
+# on particle query_index[q] placed at query[q], all others where they started.
+ForceAtFn = Callable[[jnp.ndarray, jnp.ndarray], jnp.ndarray]
+
+
+class WallResult(NamedTuple):
+    """Outcome of one step's wall handling.
+
+    Attributes:
+      position, velocity: ``(N, D)`` end-of-step state, m and m/s.
+      wall_hits: ``(2 D,)`` int, particles whose Euler position crossed each
+        wall this step (a corner crossing counts on both walls), in the order (axis 0 upper, axis 0 lower, axis 1 upper,
+        axis 1 lower, ...): right, left, top, bottom in 2-D.
+      corner_events: int, particles that crossed two or more axes this step.
+      overflow: bool, more colliding particles than the static capacity; the
+        step's result is then wrong and must be recomputed with more capacity.
+    """
+
+    position: jnp.ndarray
+    velocity: jnp.ndarray
+    wall_hits: jnp.ndarray
+    corner_events: jnp.ndarray
+    overflow: jnp.ndarray
+
+
+def _select_axis(on_axis: list, columns: list) -> jnp.ndarray:
+    """Per particle, the entry of ``columns`` on the axis flagged in ``on_axis``."""
+    picked = jnp.where(on_axis[0], columns[0], 0.0)
+    for flag, column in zip(on_axis[1:], columns[1:]):
+        picked = jnp.where(flag, column, picked)
+    return picked
+
+
+def resolve_walls(
+    position: jnp.ndarray,
+    velocity: jnp.ndarray,
+    euler_position: jnp.ndarray,
+    euler_velocity: jnp.ndarray,
+    start_force: jnp.ndarray,
+    radius: jnp.ndarray,
+    mass: jnp.ndarray,
+    external: jnp.ndarray,
+    mask: jnp.ndarray,
+    config: PhysicsConfig,
+    force_at: ForceAtFn,
+    capacity: int | None = None,
+) -> WallResult:
+    """Replace the Euler result of every wall-crossing particle by its collision.
+
+    Args:
+      position, velocity: ``(N, D)`` start-of-step state (m, m/s).
+      euler_position, euler_velocity: ``(N, D)`` unconstrained Euler result.
+      start_force: ``(N, D)`` interaction force at the start of the step (N).
+      radius, mass: ``(N,)`` in m and kg.
+      external: ``(N, D)`` external force (N).
+      mask: ``(N,)`` bool, ``False`` for padding particles (never collide).
+      config: physics parameters (``box_half_size``, ``restitution``, ``drag``, ``dt``).
+      force_at: evaluates the interaction force at trial positions.
+      capacity: static; at most this many colliding particles are handled per
+        step (their contact-point forces cost ``capacity x N`` pair terms
+        instead of ``N x N``). ``None``: all N, no overflow possible.
+    """
+    n, dim = position.shape
+    dtype = position.dtype
+    lower_all = -config.box_half_size + radius
+    upper_all = config.box_half_size - radius
+    above = (euler_position > upper_all[:, None]) & mask[:, None]
+    below = (euler_position < lower_all[:, None]) & mask[:, None]
+    crossed_any = jnp.any(above | below, axis=-1)
+    wall_hits = jnp.stack([jnp.sum(above, axis=0), jnp.sum(below, axis=0)], axis=-1).reshape(2 * dim)
+    corner_events = jnp.sum(jnp.sum(above | below, axis=-1) >= 2)
+
+    # Work on the colliding particles only: gather them (up to `capacity`),
+    # run every wall event on those rows, scatter the results back once.
+    if capacity is None or capacity >= n:
+        index = jnp.arange(n)
+        overflow = jnp.zeros((), bool)
+        gather = lambda array: array
+    else:
+        (index,) = jnp.nonzero(crossed_any, size=capacity, fill_value=n)
+        overflow = jnp.sum(crossed_any) > capacity
+        safe_index = jnp.minimum(index, n - 1)
+        gather = lambda array: array[safe_index]
+    active = gather(crossed_any) & (index < n)
+    columns = lambda array: [array[:, d] for d in range(dim)]
+    x, v = columns(gather(position)), columns(gather(velocity))
+    result_x, result_v = columns(gather(euler_position)), columns(gather(euler_velocity))
+    force_start, ext = columns(gather(start_force)), columns(gather(external))
+    lower, upper = gather(lower_all), gather(upper_all)
+    drag = config.drag * gather(radius)
+    inv_mass = 1.0 / gather(mass)
+    sqrt_restitution = math.sqrt(config.restitution)
+
+    crossed = [(c > upper) | (c < lower) for c in result_x]
+    n_crossed = sum(c.astype(jnp.int32) for c in crossed)
+    contact_time = [
+        jnp.where(crossed[d], (jnp.where(result_x[d] > upper, upper, lower) - x[d]) / jnp.where(crossed[d], v[d], 1.0), jnp.inf)
+        for d in range(dim)
+    ]
+    # Rank of each axis in contact-time order; ties go to the lower axis.
+    rank = [
+        sum(((contact_time[e] < contact_time[d]) | ((contact_time[e] == contact_time[d]) & (e < d))).astype(jnp.int32)
+            for e in range(dim) if e != d)
+        for d in range(dim)
+    ]
+
+    start, start_velocity, force_at_start = x, v, force_start
+    remaining = jnp.full(lower.shape, config.dt, dtype)
+    for event in range(dim):
+        on_axis = [r == event for r in rank]
+        result_d = _select_axis(on_axis, result_x)
+        if event > 0:
+            still_crossing = (result_d > upper) | (result_d < lower)
+            active = active & (event < n_crossed) & still_crossing
+        wall = jnp.where(result_d > upper, upper, lower)
+        start_d = _select_axis(on_axis, start)
+        velocity_d = jnp.where(active, _select_axis(on_axis, start_velocity), 1.0)
+        t_contact = jnp.clip((wall - start_d) / velocity_d, 0.0, remaining)
+        t_rest = remaining - t_contact
+        contact = [s + t_contact * w for s, w in zip(start, start_velocity)]
+        # Drag in both parts of the sub-step uses the velocity it started with.
+        other_forces = [e - drag * w for e, w in zip(ext, start_velocity)]
+        before = [w + t_contact * inv_mass * (o + f) for w, o, f in zip(start_velocity, other_forces, force_at_start)]
+        reflected = [sqrt_restitution * jnp.where(flag, -b, b) for flag, b in zip(on_axis, before)]
+        force_at_contact = columns(force_at(jnp.stack(contact, axis=-1), jnp.where(active, index, n)))
+        after_v = [r + t_rest * inv_mass * (o + f) for r, o, f in zip(reflected, other_forces, force_at_contact)]
+        after_x = [c + t_rest * r for c, r in zip(contact, reflected)]
+
+        keep = lambda new, old: [jnp.where(active, a, b) for a, b in zip(new, old)]
+        result_x, result_v = keep(after_x, result_x), keep(after_v, result_v)
+        start, start_velocity = keep(contact, start), keep(reflected, start_velocity)
+        force_at_start = keep(force_at_contact, force_at_start)
+        remaining = jnp.where(active, t_rest, remaining)
+
+    # In exact arithmetic every particle ends inside; the clip only removes
+    # rounding of a contact point that lands an ulp beyond its wall.
+    result_x = [jnp.clip(c, lower, upper) for c in result_x]
+    new_x, new_v = jnp.stack(result_x, axis=-1), jnp.stack(result_v, axis=-1)
+    collided = gather(crossed_any) & (index < n)
+    if capacity is None or capacity >= n:
+        new_position = jnp.where(collided[:, None], new_x, euler_position)
+        new_velocity = jnp.where(collided[:, None], new_v, euler_velocity)
+    else:
+        scatter_index = jnp.where(collided, index, n)
+        new_position = euler_position.at[scatter_index].set(new_x, mode="drop")
+        new_velocity = euler_velocity.at[scatter_index].set(new_v, mode="drop")
+    return WallResult(new_position, new_velocity, wall_hits, corner_events, overflow)
