@@ -55,12 +55,12 @@ class PhysicsConfig:
     neighbor_skin: float = 2e-3
 
     def __post_init__(self):
-        positive = ("thickness", "density", "gravity", "box_half_size", "dt")
+        positive = ("thickness", "density", "box_half_size", "dt")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in ("fluid_density", "drag", "well_depth_coeff", "min_distance_coeff"):
+        for name in ("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be a finite number >= 0, got {value!r}")

@@ -126,7 +126,9 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
       * ``init_fn(position, velocity, radius, mask=None, neighbors=None)``
         builds a :class:`SimState`. With ``config.cutoff`` set, pass a
         neighbour list allocated outside ``jit`` by
-        ``neighbor_fn_for(config, D).allocate(position + L)``.
+        ``neighbor_fn_for(config, D).allocate(position + L)`` for linear
+        cost; without one, pairs are still cut off at ``config.cutoff`` but
+        found by the all-pairs ``N x N`` path.
       * ``step_fn(state)`` advances one Euler step of ``config.dt`` seconds.
     """
 
@@ -137,10 +139,6 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         radius = jnp.asarray(radius, dtype)
         n, dim = position.shape
         mask = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
-        if config.cutoff is not None and neighbors is None:
-            raise ValueError(
-                "PhysicsConfig.cutoff is set: pass neighbors=neighbor_fn_for(config, D).allocate(position + L)"
-            )
         position = _park_padding(position, mask, config)
         velocity = jnp.where(mask[:, None], velocity, 0.0)
         # Padding radii are replaced by a harmless positive value.
@@ -291,11 +289,8 @@ def simulate(
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
     n, dim = x0.shape
     if _is_traced(x0, v0, radius, mask):
-        if config.cutoff is not None:
-            raise ValueError(
-                "simulate with a finite cutoff allocates a neighbour list and needs concrete inputs; "
-                "under jit use euler_integrator with a list from neighbor_fn_for(config, D).allocate"
-            )
+        # Neighbour lists cannot be allocated under a transformation: a finite
+        # cutoff is then applied on the exact all-pairs path.
         capacity = None if collision_capacity == "auto" else collision_capacity
         init_fn, _ = euler_integrator(config, collision_capacity=capacity)
         state = init_fn(x0, v0, radius, mask)
