@@ -10,6 +10,7 @@ from dispgns.physics import (
     simulate,
     simulate_batch,
 )
+from dispgns.metrics import chaos_floor_rollout, constant_velocity_rollout, rollout_metrics, summarize
 
 __all__ = [
     "__version__",
@@ -19,4 +20,8 @@ __all__ = [
     "sample_initial_state",
     "simulate",
     "simulate_batch",
+    "rollout_metrics",
+    "summarize",
+    "constant_velocity_rollout",
+    "chaos_floor_rollout",
 ]

@@ -1,0 +1,700 @@
+"""Evaluation metrics for rollouts of particle suspensions (arrays in, numbers out).
+
+Conventions shared by every function here:
+
+* positions are normalised by the box half-size ``L`` (the box is
+  ``[-1, 1]^D``), shape ``(T, N, D)``; ``radius`` is ``(N,)``, also divided by
+  ``L``; ``mask`` is an optional ``(N,)`` bool, ``False`` for padding
+  particles, which never count in any metric (``None`` = all real);
+* the first ``C = input_frames`` frames (6 in the paper) are the inputs given
+  to the model and frames ``C .. T-1`` are predicted; every "per-frame" curve
+  below covers the predicted frames only, so its entry ``k`` is frame
+  ``C + k`` (``k + 1`` model steps after the last input);
+* ``frame_dt`` is the time between frames in seconds (1.5e-3 in the paper);
+  the box half-size ``L`` is in metres (0.1 in the paper).
+
+The array functions (:func:`per_frame_mse`, :func:`wall_violations`,
+:func:`overlap_counts`, :func:`kinetic_energy`, :func:`mean_height`,
+:func:`constant_velocity_rollout`, ...) are pure ``jax.numpy`` and work under
+``jax.jit`` / ``jax.vmap`` with the integer arguments static. The host-level
+functions :func:`horizon_mse`, :func:`rollout_metrics` and :func:`summarize`
+return plain Python floats and lists (JSON-ready), and :func:`chaos_floor_rollout`
+runs the ground-truth physics.
+
+The paper (Hashemi & Izadkhah 2025, spec section 3) reports its rollout MSE in
+normalised units and converts an MSE of 6.6e-4 into "0.066 mm", which
+multiplies a squared length by ``L`` and is not a length. The root-mean-square
+error is ``sqrt(MSE) * L`` (2.6 mm for that example); :func:`rollout_metrics`
+reports it in millimetres and in mean particle diameters, and keeps the
+paper's number only under the explicit name ``mse_times_L_mm``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from dispgns.physics import PhysicsConfig, particle_mass, simulate
+
+DEFAULT_HORIZONS: tuple[int, ...] = (1, 10, 50, 100)
+"""Horizons (in predicted frames) reported by :func:`rollout_metrics`."""
+
+
+# ----------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------
+
+def _weights(mask, n: int, dtype) -> jnp.ndarray:
+    """``(N,)`` float weights: 1 for real particles, 0 for padding."""
+    if mask is None:
+        return jnp.ones((n,), dtype)
+    mask = jnp.asarray(mask)
+    if mask.shape != (n,):
+        raise ValueError(f"mask must have shape ({n},), got {mask.shape}")
+    return mask.astype(dtype)
+
+
+def _as_trajectory(name: str, positions) -> jnp.ndarray:
+    positions = jnp.asarray(positions)
+    if positions.ndim != 3:
+        raise ValueError(f"{name} must have shape (T, N, D), got {positions.shape}")
+    if not jnp.issubdtype(positions.dtype, jnp.floating):
+        positions = positions.astype(jnp.float32)
+    return positions
+
+
+def _as_radius(radius, n: int, dtype) -> jnp.ndarray:
+    radius = jnp.asarray(radius, dtype)
+    if radius.shape != (n,):
+        raise ValueError(f"radius must have shape ({n},), got {radius.shape}")
+    return radius
+
+
+def _check_pair(prediction, truth, input_frames: int):
+    prediction = _as_trajectory("prediction", prediction)
+    truth = _as_trajectory("truth", truth)
+    if prediction.shape != truth.shape:
+        raise ValueError(f"prediction {prediction.shape} and truth {truth.shape} must have the same shape (T, N, D)")
+    if not 1 <= input_frames < truth.shape[0]:
+        raise ValueError(
+            f"input_frames must lie in [1, T - 1] = [1, {truth.shape[0] - 1}] so that some frames are predicted, "
+            f"got {input_frames}"
+        )
+    return prediction, truth
+
+
+# ----------------------------------------------------------------------------
+# position errors
+# ----------------------------------------------------------------------------
+
+def squared_error_per_frame(prediction, truth, mask=None) -> jnp.ndarray:
+    """Mean squared position error of every frame.
+
+    Args:
+      prediction, truth: ``(T, N, D)`` positions (normalised units).
+      mask: optional ``(N,)`` bool; padding particles are excluded.
+
+    Returns:
+      ``(T,)``: for each frame the mean over real particles and the ``D`` axes
+      of the squared difference (normalised units squared).
+    """
+    prediction = _as_trajectory("prediction", prediction)
+    truth = _as_trajectory("truth", truth)
+    if prediction.shape != truth.shape:
+        raise ValueError(f"prediction {prediction.shape} and truth {truth.shape} must have the same shape (T, N, D)")
+    _, n, dim = truth.shape
+    weight = _weights(mask, n, truth.dtype)
+    squared = jnp.sum((prediction - truth) ** 2, axis=-1)
+    # where, not a product: padding rows may hold anything, NaN included.
+    squared = jnp.where(weight > 0, squared, 0.0)
+    return squared @ weight / (jnp.sum(weight) * dim)
+
+
+def per_frame_mse(prediction, truth, *, input_frames: int = 6, mask=None) -> jnp.ndarray:
+    """Per-frame MSE curve over the predicted frames.
+
+    Args:
+      prediction, truth: ``(T, N, D)`` normalised positions; frames
+        ``0 .. C-1`` are inputs (``C = input_frames``, static).
+      mask: optional ``(N,)`` bool.
+
+    Returns:
+      ``(T - C,)``: entry ``k`` is the MSE of frame ``C + k`` (normalised units
+      squared).
+    """
+    prediction, truth = _check_pair(prediction, truth, input_frames)
+    return squared_error_per_frame(prediction[input_frames:], truth[input_frames:], mask)
+
+
+def rollout_mse(prediction, truth, *, input_frames: int = 6, mask=None, horizon: int | None = None) -> jnp.ndarray:
+    """The paper's rollout MSE: mean squared position error (normalised units).
+
+    The mean runs over all predicted frames (or the first ``horizon`` of them),
+    all real particles and all axes.
+
+    Args:
+      prediction, truth: ``(T, N, D)`` normalised positions.
+      input_frames: static; number of given input frames ``C``.
+      mask: optional ``(N,)`` bool.
+      horizon: static; ``None`` for all ``T - C`` predicted frames, else the
+        first ``horizon`` predicted frames (frames ``C .. C + horizon - 1``).
+        A horizon longer than the rollout is an error here (see
+        :func:`horizon_mse` for the lenient version).
+
+    Returns:
+      scalar MSE.
+    """
+    curve = per_frame_mse(prediction, truth, input_frames=input_frames, mask=mask)
+    if horizon is not None:
+        if not 1 <= horizon <= curve.shape[0]:
+            raise ValueError(f"horizon must lie in [1, {curve.shape[0]}] (predicted frames), got {horizon}")
+        curve = curve[:horizon]
+    # Every frame holds the same particles, so the mean of the per-frame means
+    # is the mean over all particle-frames.
+    return jnp.mean(curve)
+
+
+def horizon_mse(curve, horizons: Sequence[int] = DEFAULT_HORIZONS) -> dict[str, float | None]:
+    """MSE over the first ``h`` predicted frames, for several horizons.
+
+    Args:
+      curve: ``(T - C,)`` per-frame MSE from :func:`per_frame_mse`.
+      horizons: horizons ``h >= 1`` in predicted frames.
+
+    Returns:
+      ``{str(h): mse or None, ..., "full": mse}`` as Python floats. A horizon
+      longer than the rollout (``h > T - C``) is ``None`` (JSON ``null``):
+      it is skipped rather than silently truncated.
+    """
+    curve = np.asarray(curve, np.float64)
+    if curve.ndim != 1 or curve.size == 0:
+        raise ValueError(f"curve must be a non-empty 1-D per-frame MSE, got shape {curve.shape}")
+    out: dict[str, float | None] = {}
+    for h in horizons:
+        h = int(h)
+        if h < 1:
+            raise ValueError(f"horizons must be >= 1, got {h}")
+        out[str(h)] = float(np.mean(curve[:h])) if h <= curve.size else None
+    out["full"] = float(np.mean(curve))
+    return out
+
+
+def rmse_mm(mse, box_half_size: float):
+    """Root-mean-square position error in millimetres: ``sqrt(mse) * L * 1000``.
+
+    Args:
+      mse: MSE in normalised units (scalar or array).
+      box_half_size: ``L`` in m.
+    """
+    return jnp.sqrt(mse) * box_half_size * 1e3
+
+
+def rmse_diameters(mse, radius, mask=None):
+    """Root-mean-square position error in mean particle diameters.
+
+    ``sqrt(mse) * L / mean(2 a_i)``; with ``mse`` and ``radius`` both in
+    normalised units, ``L`` cancels.
+
+    Args:
+      mse: MSE in normalised units (scalar or array).
+      radius: ``(N,)`` normalised radii; the mean runs over real particles.
+      mask: optional ``(N,)`` bool.
+    """
+    radius = jnp.asarray(radius)
+    weight = _weights(mask, radius.shape[0], radius.dtype)
+    mean_diameter = 2.0 * jnp.sum(jnp.where(weight > 0, radius, 0.0)) / jnp.sum(weight)
+    return jnp.sqrt(mse) / mean_diameter
+
+
+def mse_times_L_mm(mse, box_half_size: float):
+    """The paper's conversion ``mse * L * 1000`` ("0.066 mm" for 6.6e-4).
+
+    Kept only to compare with the paper's text: it multiplies a squared length
+    by ``L`` and is not a length. Use :func:`rmse_mm` for a real length.
+    """
+    return mse * box_half_size * 1e3
+
+
+# ----------------------------------------------------------------------------
+# physical plausibility
+# ----------------------------------------------------------------------------
+
+def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None) -> jnp.ndarray:
+    """Particles poking through a wall, per frame.
+
+    A particle is outside when on some axis its centre lies beyond its wall
+    contact position ``1 - a_i`` by more than ``tolerance * a_i``, i.e.
+    ``|x_d| > 1 - a_i + tolerance a_i``: the disk pokes through the wall by
+    more than ``tolerance`` of its radius.
+
+    Args:
+      positions: ``(T, N, D)`` normalised. radius: ``(N,)`` normalised.
+      tolerance: allowed penetration as a fraction of the radius (0.1 = 10 %).
+      mask: optional ``(N,)`` bool; padding never counts.
+
+    Returns:
+      ``(T,)`` int32: number of real particles outside the box in each frame
+      (a particle outside on two axes counts once).
+    """
+    positions = _as_trajectory("positions", positions)
+    _, n, _ = positions.shape
+    radius = _as_radius(radius, n, positions.dtype)
+    limit = 1.0 - radius + tolerance * radius
+    outside = jnp.any(jnp.abs(positions) > limit[None, :, None], axis=-1)
+    if mask is not None:
+        outside = outside & _weights(mask, n, bool)[None, :]
+    return jnp.sum(outside, axis=-1, dtype=jnp.int32)
+
+
+def overlap_counts(positions, radius, *, coeff: float = 1.75, mask=None) -> jnp.ndarray:
+    """Overlapping pairs per frame.
+
+    A pair ``i < j`` of real particles overlaps when its centre distance is
+    below ``coeff * min(a_i, a_j)`` (``r_m``, the physics' hard-core distance
+    below which the pair force stops growing, for ``coeff = 1.75``).
+
+    Args:
+      positions: ``(T, N, D)`` normalised. radius: ``(N,)`` normalised.
+      coeff: the coefficient of ``min(a_i, a_j)``.
+      mask: optional ``(N,)`` bool; pairs involving padding never count.
+
+    Returns:
+      ``(T,)`` int32: overlapping unordered pairs in each frame. Memory is
+      ``O(N^2)`` per frame (frames are processed one after another).
+    """
+    positions = _as_trajectory("positions", positions)
+    _, n, dim = positions.shape
+    radius = _as_radius(radius, n, positions.dtype)
+    real = _weights(mask, n, bool)
+    threshold = coeff * jnp.minimum(radius[:, None], radius[None, :])
+    upper = jnp.arange(n)[:, None] < jnp.arange(n)[None, :]
+    counted = upper & real[:, None] & real[None, :]
+
+    def frame(x):
+        # Per-axis (N, N) arrays: cheaper on CPU than an (N, N, D) array.
+        dist2 = sum((x[:, d, None] - x[None, :, d]) ** 2 for d in range(dim))
+        return jnp.sum((dist2 < threshold**2) & counted, dtype=jnp.int32)
+
+    return lax.map(frame, positions)
+
+
+def kinetic_energy(positions, radius, *, box_half_size: float, frame_dt: float, mask=None,
+                   config: PhysicsConfig | None = None) -> jnp.ndarray:
+    """Total kinetic energy in joules from finite-difference velocities.
+
+    The velocity at frame ``k >= 1`` is the backward difference
+    ``(x_k - x_{k-1}) L / frame_dt`` (m/s), the one the learned simulator
+    itself uses; the mass is the physics' ``m_i = pi a_i^2 s rho`` for disks
+    (``D = 2``, thickness and density from ``config``) or ``4/3 pi a_i^3 rho``
+    for spheres (``D = 3``). Ratios of energies do not depend on ``s`` or
+    ``rho``, only on ``m_i ∝ a_i^2``.
+
+    Args:
+      positions: ``(T, N, D)`` normalised. radius: ``(N,)`` normalised.
+      box_half_size: ``L`` in m. frame_dt: frame spacing in s.
+      mask: optional ``(N,)`` bool.
+      config: physics parameters for the mass (default :class:`PhysicsConfig`).
+
+    Returns:
+      ``(T - 1,)``: entry ``k - 1`` is the kinetic energy ``sum_i m_i |v_i|^2 / 2``
+      of frame ``k`` in J.
+    """
+    config = PhysicsConfig() if config is None else config
+    positions = _as_trajectory("positions", positions)
+    _, n, dim = positions.shape
+    radius = _as_radius(radius, n, positions.dtype)
+    weight = _weights(mask, n, positions.dtype)
+    mass = jnp.where(weight > 0, particle_mass(radius * box_half_size, config, dim), 0.0)
+    velocity = (positions[1:] - positions[:-1]) * (box_half_size / frame_dt)
+    speed2 = jnp.where(weight > 0, jnp.sum(velocity**2, axis=-1), 0.0)
+    return 0.5 * speed2 @ mass
+
+
+def mean_height(positions, mask=None) -> jnp.ndarray:
+    """Mean over real particles of the last coordinate (height, against gravity).
+
+    Args:
+      positions: ``(T, N, D)`` normalised. mask: optional ``(N,)`` bool.
+
+    Returns:
+      ``(T,)`` mean height per frame in normalised units.
+    """
+    positions = _as_trajectory("positions", positions)
+    weight = _weights(mask, positions.shape[1], positions.dtype)
+    height = jnp.where(weight > 0, positions[..., -1], 0.0)
+    return height @ weight / jnp.sum(weight)
+
+
+# ----------------------------------------------------------------------------
+# baselines
+# ----------------------------------------------------------------------------
+
+def constant_velocity_rollout(positions, *, input_frames: int = 6, n_frames: int | None = None) -> jnp.ndarray:
+    """The constant-velocity baseline.
+
+    Keeps the ``C`` input frames and then moves every particle on with its
+    last input velocity: ``x_{C-1+k} = x_{C-1} + k (x_{C-1} - x_{C-2})``.
+    Walls and other particles are ignored, so it is the error a model that
+    learned nothing about forces would make.
+
+    Args:
+      positions: ``(T', N, D)`` with ``T' >= C``; only frames ``C-2, C-1`` are
+        used (any unit).
+      input_frames: static ``C >= 2``.
+      n_frames: static total number of frames returned (default ``T'``).
+
+    Returns:
+      ``(n_frames, N, D)`` trajectory, frames ``0 .. C-1`` equal to the input.
+    """
+    positions = _as_trajectory("positions", positions)
+    n_frames = positions.shape[0] if n_frames is None else n_frames
+    if not 2 <= input_frames <= positions.shape[0]:
+        raise ValueError(f"input_frames must lie in [2, T] = [2, {positions.shape[0]}], got {input_frames}")
+    if n_frames < input_frames:
+        raise ValueError(f"n_frames ({n_frames}) must be >= input_frames ({input_frames})")
+    last = positions[input_frames - 1]
+    velocity = last - positions[input_frames - 2]
+    steps = jnp.arange(1, n_frames - input_frames + 1, dtype=positions.dtype)
+    future = last[None] + steps[:, None, None] * velocity[None]
+    return jnp.concatenate([positions[:input_frames], future], axis=0)
+
+
+def chaos_floor_rollout(initial_position, initial_velocity, radius, config: PhysicsConfig, *, key, n_frames: int,
+                        save_every: int = 15, perturbation: float = 1e-6, mask=None, x64: bool = True,
+                        **simulate_kwargs) -> np.ndarray:
+    """Re-run the ground truth from a slightly perturbed initial state.
+
+    The suspension is chaotic: two exact simulations whose initial positions
+    differ by ``1e-6 L`` separate over the trajectory. The error of the
+    perturbed run against the stored truth (computed with the same metrics
+    as a model) is a floor that even a perfect model could not beat.
+
+    Every coordinate of every real particle is shifted by an independent
+    normal draw of standard deviation ``perturbation * L``, then kept inside
+    the wall contact positions ``[-L + a_i, L - a_i]`` (a no-op unless a
+    particle starts within the perturbation of a wall). With
+    ``perturbation = 0`` the result is exactly ``simulate(...) / L``.
+
+    Args:
+      initial_position: ``(N, D)`` stored exact initial centres in m (SI,
+        float64, as stored in the dataset, not the normalised frames).
+      initial_velocity: ``(N, D)`` in m/s. radius: ``(N,)`` in m.
+      config: the :class:`PhysicsConfig` the truth was generated with.
+      key: a ``jax.random`` key (or an int seed).
+      n_frames: frames to return (frame 0 is the perturbed initial state).
+      save_every: Euler steps between frames (15 in the paper).
+      perturbation: standard deviation of the shift, in units of ``L``.
+      mask: optional ``(N,)`` bool for padded particles.
+      x64: run in float64 (inside ``jax.enable_x64(True)``), as the data
+        generator does; ``False`` runs in the session's precision.
+      **simulate_kwargs: passed to :func:`dispgns.physics.simulate`
+        (e.g. ``collision_capacity``, ``chunk_frames``).
+
+    Returns:
+      ``(n_frames, N, D)`` numpy array of positions divided by ``L`` (float64
+      with ``x64``), directly comparable with the stored normalised truth.
+    """
+    if perturbation < 0 or not math.isfinite(perturbation):
+        raise ValueError(f"perturbation must be a finite number >= 0 (units of L), got {perturbation!r}")
+    if isinstance(key, (int, np.integer)):
+        key = jax.random.PRNGKey(int(key))
+    half = config.box_half_size
+    with jax.enable_x64(x64):
+        dtype = jnp.float64 if x64 else jnp.float32
+        x0 = jnp.asarray(np.asarray(initial_position), dtype)
+        v0 = jnp.asarray(np.asarray(initial_velocity), dtype)
+        a = jnp.asarray(np.asarray(radius), dtype)
+        if x0.ndim != 2 or v0.shape != x0.shape or a.shape != x0.shape[:1]:
+            raise ValueError(
+                f"expected initial_position (N, D), initial_velocity (N, D) and radius (N,), got "
+                f"{x0.shape}, {v0.shape} and {a.shape}"
+            )
+        noise = jax.random.normal(key, x0.shape, dtype) * (perturbation * half)
+        if mask is not None:
+            noise = noise * _weights(mask, x0.shape[0], dtype)[:, None]
+        shifted = x0 + noise
+        lower, upper = (-half + a)[:, None], (half - a)[:, None]
+        # Clip only what the noise pushed across a wall contact position, so an
+        # unperturbed particle (or a padding one) keeps its exact position.
+        shifted = jnp.where((shifted > upper) & (x0 <= upper), upper, shifted)
+        shifted = jnp.where((shifted < lower) & (x0 >= lower), lower, shifted)
+        frames = simulate(shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask,
+                          **simulate_kwargs)
+        return np.asarray(frames) / half
+
+
+# ----------------------------------------------------------------------------
+# reports
+# ----------------------------------------------------------------------------
+
+def _floats(values) -> list[float]:
+    return [float(v) for v in np.asarray(values, np.float64).ravel()]
+
+
+def _ints(values) -> list[int]:
+    return [int(v) for v in np.asarray(values).ravel()]
+
+
+# Particle counts are padded up to a multiple of this inside rollout_metrics so
+# that test sets whose trajectories differ by a few particles share one
+# compiled program (padding never changes a metric: it is masked out).
+_PARTICLE_BUCKET = 32
+
+
+def _metric_arrays(prediction, truth, chaos, radius, mask, *, input_frames, box_half_size, frame_dt,
+                   wall_tolerance, overlap_coeff, config):
+    """Every per-frame array of :func:`rollout_metrics`, in one XLA program."""
+    c = input_frames
+    energy = dict(box_half_size=box_half_size, frame_dt=frame_dt, mask=mask, config=config)
+    baseline = constant_velocity_rollout(truth, input_frames=c)
+    out = {
+        "curve": per_frame_mse(prediction, truth, input_frames=c, mask=mask),
+        "constant_velocity_curve": per_frame_mse(baseline, truth, input_frames=c, mask=mask),
+        "walls": wall_violations(prediction[c:], radius, tolerance=wall_tolerance, mask=mask),
+        "walls_truth": wall_violations(truth[c:], radius, tolerance=wall_tolerance, mask=mask),
+        "overlaps": overlap_counts(prediction[c:], radius, coeff=overlap_coeff, mask=mask),
+        "overlaps_truth": overlap_counts(truth[c:], radius, coeff=overlap_coeff, mask=mask),
+        # kinetic_energy's entry k - 1 is frame k: keep frames c .. T-1.
+        "ke_pred": kinetic_energy(prediction, radius, **energy)[c - 1:],
+        "ke_true": kinetic_energy(truth, radius, **energy)[c - 1:],
+        "height_pred": mean_height(prediction[c:], mask),
+        "height_true": mean_height(truth[c:], mask),
+        "finite": jnp.all(jnp.isfinite(prediction[c:]) | ~mask[None, :, None]),
+        "mean_diameter": 2.0 * jnp.sum(jnp.where(mask, radius, 0.0)) / jnp.sum(mask),
+    }
+    if chaos is not None:
+        out["chaos_floor_curve"] = per_frame_mse(chaos, truth, input_frames=c, mask=mask)
+    return out
+
+
+_metric_arrays_jit = jax.jit(
+    _metric_arrays,
+    static_argnames=("input_frames", "box_half_size", "frame_dt", "wall_tolerance", "overlap_coeff", "config"),
+)
+
+
+def _error_family(prefix: str, curve, mean_diameter: float, box_half_size: float, horizons) -> dict[str, Any]:
+    curve = np.asarray(curve, np.float64)
+    mse = float(np.mean(curve))
+    rmse = math.sqrt(mse) if mse >= 0 else float("nan")
+    out: dict[str, Any] = {
+        f"{prefix}mse": mse,
+        f"{prefix}rmse_mm": rmse * box_half_size * 1e3,
+        f"{prefix}rmse_diameters": rmse / mean_diameter,
+    }
+    for h, value in horizon_mse(curve, horizons).items():
+        out[f"{prefix}mse_h{h}"] = value
+    out[f"{prefix}per_frame_mse"] = _floats(curve)
+    return out
+
+
+def _pad_particles(array: np.ndarray, count: int, axis: int, fill) -> np.ndarray:
+    if count == 0:
+        return array
+    shape = list(array.shape)
+    shape[axis] = count
+    return np.concatenate([array, np.full(shape, fill, array.dtype)], axis=axis)
+
+
+def rollout_metrics(
+    prediction,
+    truth,
+    radius,
+    *,
+    box_half_size: float,
+    input_frames: int = 6,
+    frame_dt: float = 1.5e-3,
+    mask=None,
+    horizons: Sequence[int] = DEFAULT_HORIZONS,
+    wall_tolerance: float = 0.1,
+    overlap_coeff: float = 1.75,
+    chaos_floor=None,
+    physics_config: PhysicsConfig | None = None,
+) -> dict[str, Any]:
+    """Every metric of one rollout, as a JSON-ready dict.
+
+    Args:
+      prediction, truth: ``(T, N, D)`` normalised positions; frames
+        ``0 .. C-1`` are the inputs (the prediction's should equal the truth's).
+      radius: ``(N,)`` normalised radii.
+      box_half_size: ``L`` in m (0.1 in the paper).
+      input_frames: ``C``.
+      frame_dt: frame spacing in s (1.5e-3 in the paper).
+      mask: optional ``(N,)`` bool; padding particles are excluded everywhere.
+      horizons: horizons (predicted frames) for ``mse_h{h}``.
+      wall_tolerance: see :func:`wall_violations`.
+      overlap_coeff: see :func:`overlap_counts`.
+      chaos_floor: optional ``(T, N, D)`` normalised trajectory from
+        :func:`chaos_floor_rollout`; adds the ``chaos_floor_*`` entries.
+      physics_config: masses for the kinetic energy (default
+        :class:`PhysicsConfig`; only ``thickness`` and ``density`` matter).
+
+    Returns:
+      A dict of Python scalars and lists. Per-frame lists have ``T - C``
+      entries, entry ``k`` being frame ``C + k``. Keys:
+
+      * ``mse`` (the paper's rollout MSE, normalised units squared),
+        ``rmse_mm``, ``rmse_diameters`` (RMSE over the mean diameter
+        ``2 mean(a_i)``), ``mse_times_L_mm`` (the paper's "mm" number, not a
+        length), ``mse_h1``, ``mse_h10``, ``mse_h50``, ``mse_h100``,
+        ``mse_hfull`` (``None`` when a horizon exceeds ``T - C``),
+        ``per_frame_mse``;
+      * ``constant_velocity_*``: the same error family for
+        :func:`constant_velocity_rollout` of the truth, and
+        ``mse_over_constant_velocity`` (model MSE / baseline MSE);
+      * ``chaos_floor_*``: the same error family for ``chaos_floor`` (only if
+        given);
+      * ``wall_violations_per_frame``, ``wall_violations_total`` (particle-frames
+        of the prediction outside the box, predicted frames only),
+        ``wall_violations_truth_total``;
+      * ``overlaps_per_frame``, ``overlaps_total``, ``overlaps_max``,
+        ``overlaps_truth_total``, ``overlaps_truth_max`` (pairs closer than
+        ``overlap_coeff * min(a_i, a_j)``; the truth itself has a few where
+        disks pile up);
+      * ``kinetic_energy_truth``, ``kinetic_energy_prediction`` (per frame, J,
+        see :func:`kinetic_energy`), ``kinetic_energy_relative_error`` (per
+        frame, ``(KE_pred - KE_true) / mean_t KE_true``: normalised by the
+        truth's mean over the predicted frames because the energy of a settled
+        suspension approaches 0), ``kinetic_energy_mean_abs_relative_error``
+        and ``kinetic_energy_total_relative_error``
+        (``sum_t (KE_pred - KE_true) / sum_t KE_true``, signed);
+      * ``mean_height_truth``, ``mean_height_error`` (per frame, prediction
+        minus truth, normalised), ``mean_height_mean_abs_error``,
+        ``mean_height_final_error`` (normalised), ``mean_height_mean_abs_error_mm``;
+      * ``finite`` (all predicted positions finite) and the settings
+        ``n_frames``, ``n_particles``, ``input_frames``, ``frame_dt``,
+        ``box_half_size``, ``wall_tolerance``, ``overlap_coeff``.
+
+      Values are ``nan`` where the prediction is not finite. Not jittable
+      (host-level; it returns Python numbers).
+    """
+    prediction, truth = _check_pair(prediction, truth, input_frames)
+    n_frames, n, _ = truth.shape
+    dtype = truth.dtype
+    prediction = np.asarray(prediction, dtype)
+    truth = np.asarray(truth, dtype)
+    radius = np.asarray(_as_radius(radius, n, dtype))
+    real = np.ones(n, bool) if mask is None else np.asarray(mask, bool)
+    if real.shape != (n,):
+        raise ValueError(f"mask must have shape ({n},), got {real.shape}")
+    if chaos_floor is not None:
+        chaos_floor = np.asarray(_as_trajectory("chaos_floor", chaos_floor), dtype)
+        if chaos_floor.shape != truth.shape:
+            raise ValueError(f"chaos_floor must have the truth's shape {truth.shape}, got {chaos_floor.shape}")
+    c = input_frames
+
+    extra = -n % _PARTICLE_BUCKET
+    arrays = _metric_arrays_jit(
+        _pad_particles(prediction, extra, 1, 0.0),
+        _pad_particles(truth, extra, 1, 0.0),
+        None if chaos_floor is None else _pad_particles(chaos_floor, extra, 1, 0.0),
+        _pad_particles(radius, extra, 0, 1.0),
+        _pad_particles(real, extra, 0, False),
+        input_frames=c,
+        box_half_size=float(box_half_size),
+        frame_dt=float(frame_dt),
+        wall_tolerance=float(wall_tolerance),
+        overlap_coeff=float(overlap_coeff),
+        config=PhysicsConfig() if physics_config is None else physics_config,
+    )
+    arrays = jax.device_get(arrays)
+    mean_diameter = float(arrays["mean_diameter"])
+
+    out: dict[str, Any] = {
+        "n_frames": int(n_frames),
+        "n_particles": int(real.sum()),
+        "input_frames": int(c),
+        "frame_dt": float(frame_dt),
+        "box_half_size": float(box_half_size),
+        "wall_tolerance": float(wall_tolerance),
+        "overlap_coeff": float(overlap_coeff),
+        "finite": bool(arrays["finite"]),
+    }
+    out.update(_error_family("", arrays["curve"], mean_diameter, box_half_size, horizons))
+    out["mse_times_L_mm"] = out["mse"] * box_half_size * 1e3
+
+    out.update(_error_family("constant_velocity_", arrays["constant_velocity_curve"], mean_diameter,
+                             box_half_size, horizons))
+    baseline_mse = out["constant_velocity_mse"]
+    out["mse_over_constant_velocity"] = out["mse"] / baseline_mse if baseline_mse > 0 else float("nan")
+
+    if chaos_floor is not None:
+        out.update(_error_family("chaos_floor_", arrays["chaos_floor_curve"], mean_diameter, box_half_size,
+                                 horizons))
+
+    walls, overlaps, overlaps_truth = arrays["walls"], arrays["overlaps"], arrays["overlaps_truth"]
+    out["wall_violations_per_frame"] = _ints(walls)
+    out["wall_violations_total"] = int(np.sum(walls))
+    out["wall_violations_truth_total"] = int(np.sum(arrays["walls_truth"]))
+    out["overlaps_per_frame"] = _ints(overlaps)
+    out["overlaps_total"] = int(np.sum(overlaps))
+    out["overlaps_max"] = int(np.max(overlaps))
+    out["overlaps_truth_total"] = int(np.sum(overlaps_truth))
+    out["overlaps_truth_max"] = int(np.max(overlaps_truth))
+
+    ke_true = np.asarray(arrays["ke_true"], np.float64)
+    ke_pred = np.asarray(arrays["ke_pred"], np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        relative = (ke_pred - ke_true) / np.mean(ke_true)
+        total_relative = float(np.sum(ke_pred - ke_true) / np.sum(ke_true))
+    out["kinetic_energy_truth"] = _floats(ke_true)
+    out["kinetic_energy_prediction"] = _floats(ke_pred)
+    out["kinetic_energy_relative_error"] = _floats(relative)
+    out["kinetic_energy_mean_abs_relative_error"] = float(np.mean(np.abs(relative)))
+    out["kinetic_energy_total_relative_error"] = total_relative
+
+    height_true = np.asarray(arrays["height_true"], np.float64)
+    height_error = np.asarray(arrays["height_pred"], np.float64) - height_true
+    out["mean_height_truth"] = _floats(height_true)
+    out["mean_height_error"] = _floats(height_error)
+    out["mean_height_mean_abs_error"] = float(np.mean(np.abs(height_error)))
+    out["mean_height_final_error"] = float(height_error[-1])
+    out["mean_height_mean_abs_error_mm"] = out["mean_height_mean_abs_error"] * box_half_size * 1e3
+    return out
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, (bool, np.bool_))
+
+
+def summarize(metrics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Mean and standard deviation of every metric across trajectories.
+
+    Args:
+      metrics: dicts from :func:`rollout_metrics`, one per trajectory.
+
+    Returns:
+      ``{key: {"mean": m, "std": s, "n": k}}`` for every scalar key (the
+      paper's "mean ± std"; ``std`` is the population standard deviation,
+      ``ddof = 0``). ``None`` values (horizons longer than a rollout) are left
+      out and ``n`` counts the values used; ``nan`` values propagate (a
+      diverged rollout is not silently dropped). Booleans give the fraction
+      ``True`` as the mean. For list-valued keys (per-frame curves) ``mean``
+      and ``std`` are element-wise lists over the common prefix of all
+      trajectories that have the key. Strings are ignored.
+    """
+    metrics = list(metrics)
+    if not metrics:
+        raise ValueError("summarize needs at least one metrics dict")
+    keys: list[str] = []
+    for entry in metrics:
+        for key in entry:
+            if key not in keys:
+                keys.append(key)
+    out: dict[str, Any] = {"n_trajectories": len(metrics)}
+    for key in keys:
+        values = [entry[key] for entry in metrics if key in entry and entry[key] is not None]
+        if values and all(_is_number(v) for v in values):
+            array = np.asarray(values, np.float64)
+            out[key] = {"mean": float(np.mean(array)), "std": float(np.std(array)), "n": len(values)}
+        elif values and all(isinstance(v, (list, tuple)) and all(_is_number(x) for x in v) for v in values):
+            length = min(len(v) for v in values)
+            array = np.asarray([list(v)[:length] for v in values], np.float64).reshape(len(values), length)
+            out[key] = {"mean": _floats(np.mean(array, axis=0)), "std": _floats(np.std(array, axis=0)),
+                        "n": len(values)}
+    return out

@@ -1,0 +1,557 @@
+"""Pictures of rollouts and training runs (matplotlib only; arrays in, figures out).
+
+Every function takes plain arrays or lists and returns a
+:class:`matplotlib.figure.Figure`; given a ``path`` it also writes the file,
+atomically (a temporary name in the same directory, then ``os.replace``), so a
+failed write never leaves a partial file behind. Figures are drawn on the
+non-interactive Agg canvas and never go through ``pyplot``, so no display is
+needed and no global backend state is touched (figures embed in notebooks
+all the same).
+
+Positions are normalised by the box half-size ``L`` (the box is
+``[-1, 1]^2``), shape ``(T, N, 2)``; radii ``(N,)`` are normalised too and
+particles are drawn as circles of their true radius in box units. A
+``mask`` ``(N,)`` hides padding particles. Pass ``box_half_size`` (m) to label
+radii in millimetres.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from typing import Any, Callable, Mapping, Sequence
+
+import matplotlib
+import numpy as np
+from matplotlib import animation
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
+from matplotlib.collections import EllipseCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+_PAD = 0.04  # margin around the box, in box units
+
+
+# ----------------------------------------------------------------------------
+# files
+# ----------------------------------------------------------------------------
+
+def _atomic_write(path, write: Callable[[str], None]) -> str:
+    """Call ``write(tmp)`` on a temporary path next to ``path``, then rename it.
+
+    The temporary name keeps ``path``'s extension because writers (Pillow,
+    ffmpeg, savefig) infer the format from it. On any error the temporary
+    file is removed and the error re-raised; ``path`` is untouched.
+    """
+    path = os.fspath(path)
+    directory, name = os.path.split(os.path.abspath(path))
+    suffix = os.path.splitext(name)[1]
+    tmp = os.path.join(directory, f".{name}.{uuid.uuid4().hex}.tmp{suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return path
+
+
+def _new_figure(figsize, dpi, layout=None) -> Figure:
+    fig = Figure(figsize=figsize, dpi=dpi, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def save_figure(fig: Figure, path, *, dpi: float | None = None) -> str:
+    """Write ``fig`` to ``path`` atomically (format from the extension).
+
+    The image has exactly the figure's size (``figsize * dpi`` pixels; no
+    tight bounding box). Returns ``path`` as a string.
+    """
+    fmt = os.path.splitext(os.fspath(path))[1].lstrip(".").lower() or "png"
+    return _atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi if dpi is not None else fig.dpi))
+
+
+def ffmpeg_executable() -> str | None:
+    """Path of an ffmpeg binary: imageio-ffmpeg's, else one on ``PATH``, else ``None``."""
+    try:
+        import imageio_ffmpeg
+
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+        if exe and os.path.exists(exe):
+            return exe
+    except Exception:  # noqa: BLE001 - not installed, or no binary for this platform
+        pass
+    return shutil.which("ffmpeg")
+
+
+# ----------------------------------------------------------------------------
+# particles
+# ----------------------------------------------------------------------------
+
+def _prepare(trajectories: Sequence[Any], radius, mask):
+    """Numpy copies with padding particles removed; checks shapes."""
+    radius = np.asarray(radius, np.float64)
+    if radius.ndim != 1:
+        raise ValueError(f"radius must have shape (N,), got {radius.shape}")
+    n = radius.shape[0]
+    real = np.ones(n, bool) if mask is None else np.asarray(mask, bool)
+    if real.shape != (n,):
+        raise ValueError(f"mask must have shape ({n},), got {real.shape}")
+    out = []
+    for traj in trajectories:
+        traj = np.asarray(traj, np.float64)
+        if traj.ndim != 3 or traj.shape[1] != n or traj.shape[2] != 2:
+            raise ValueError(f"trajectories must have shape (T, {n}, 2) (normalised 2-D positions), got {traj.shape}")
+        out.append(traj[:, real])
+    lengths = {t.shape[0] for t in out}
+    if len(lengths) != 1:
+        raise ValueError(f"trajectories must have the same number of frames, got {sorted(lengths)}")
+    return out, radius[real]
+
+
+def _radius_scale(radius, box_half_size):
+    """Colour values and label: radii in mm when ``box_half_size`` is known."""
+    if box_half_size is None:
+        return radius, "radius  a / L"
+    return radius * box_half_size * 1e3, "radius (mm)"
+
+
+def _radius_norm(values) -> Normalize:
+    lo, hi = (float(np.min(values)), float(np.max(values))) if values.size else (0.0, 1.0)
+    if hi - lo < 1e-12:
+        lo, hi = lo - 0.5 * max(abs(lo), 1e-3), hi + 0.5 * max(abs(hi), 1e-3)
+    return Normalize(lo, hi)
+
+
+def _box_axes(ax, label: str | None) -> None:
+    ax.set_xlim(-1 - _PAD, 1 + _PAD)
+    ax.set_ylim(-1 - _PAD, 1 + _PAD)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+    ax.add_patch(Rectangle((-1, -1), 2, 2, fill=False, edgecolor="black", linewidth=1.5, zorder=3))
+    if label:
+        ax.set_title(label)
+
+
+def _particles(ax, positions, radius, colour_values, norm, cmap) -> EllipseCollection:
+    """Circles of diameter ``2 a`` in data units (``units="xy"``), coloured by radius."""
+    diameters = 2.0 * radius
+    collection = EllipseCollection(
+        diameters, diameters, np.zeros_like(diameters), units="xy", offsets=positions,
+        offset_transform=ax.transData, cmap=cmap, norm=norm, edgecolors="black", linewidths=0.3, zorder=2,
+    )
+    collection.set_array(colour_values)
+    ax.add_collection(collection)
+    return collection
+
+
+def _time_label(frame: int, frame_dt: float | None, input_frames: int | None) -> str:
+    text = f"frame {frame}" if frame_dt is None else f"t = {frame * frame_dt:.4f} s  (frame {frame})"
+    if input_frames is not None and frame < input_frames:
+        text += ", input"
+    return text
+
+
+class _Scene:
+    """Side-by-side panels of particle trajectories, updated frame by frame."""
+
+    def __init__(self, panels, radius, *, frame_dt, input_frames, box_half_size, cmap, figsize, dpi):
+        self.trajectories = [traj for _, traj in panels]
+        self.frame_dt = frame_dt
+        self.input_frames = input_frames
+        colours, colour_label = _radius_scale(radius, box_half_size)
+        norm = _radius_norm(colours)
+        self.fig = _new_figure(figsize, dpi, layout="constrained")
+        axes = self.fig.subplots(1, len(panels), squeeze=False)[0]
+        self.collections = []
+        for ax, (label, traj) in zip(axes, panels):
+            _box_axes(ax, label)
+            self.collections.append(_particles(ax, traj[0], radius, colours, norm, cmap))
+        self.fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), label=colour_label, shrink=0.85)
+        self.title = self.fig.suptitle(_time_label(0, frame_dt, input_frames))
+        # Lay out once, then freeze: re-running the constrained layout on every
+        # frame costs more than drawing the particles.
+        self.fig.canvas.draw()
+        self.fig.set_layout_engine("none")
+
+    def update(self, frame: int):
+        for collection, traj in zip(self.collections, self.trajectories):
+            collection.set_offsets(traj[frame])
+        self.title.set_text(_time_label(frame, self.frame_dt, self.input_frames))
+        return [*self.collections, self.title]
+
+
+def _frame_indices(n_frames: int, start: int, stop: int | None, stride: int) -> list[int]:
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    indices = list(range(n_frames))[start:stop:stride]
+    if not indices:
+        raise ValueError(f"no frames selected from {n_frames} with start={start}, stop={stop}, stride={stride}")
+    return indices
+
+
+def _panels(truth, prediction, titles):
+    if prediction is None:
+        return [truth], [titles[0]]
+    return [truth, prediction], list(titles)
+
+
+def rollout_animation(
+    truth,
+    prediction=None,
+    radius=None,
+    *,
+    mask=None,
+    frame_dt: float | None = 1.5e-3,
+    input_frames: int | None = 6,
+    start: int = 0,
+    stop: int | None = None,
+    stride: int = 1,
+    fps: float = 20.0,
+    box_half_size: float | None = None,
+    titles: Sequence[str] = ("ground truth", "prediction"),
+    figsize=(9.0, 4.2),
+    dpi: float = 80,
+    cmap: str = "viridis",
+):
+    """Side-by-side animation (ground truth | prediction) for notebooks.
+
+    Args:
+      truth: ``(T, N, 2)`` normalised positions. prediction: the same shape,
+        or ``None`` for a single panel.
+      radius: ``(N,)`` normalised radii (circles drawn to scale).
+      mask: optional ``(N,)`` bool hiding padding particles.
+      frame_dt: frame spacing in s for the title (``None``: frame numbers).
+      input_frames: frames ``< input_frames`` are marked "input" in the title
+        (``None``: no marks).
+      start, stop, stride: the frames shown, ``range(T)[start:stop:stride]``.
+      fps: frames per second. box_half_size: ``L`` in m to label radii in mm.
+      titles: panel titles. figsize, dpi: figure size (inches) and resolution.
+      cmap: matplotlib colour map for the radius.
+
+    Returns:
+      ``(fig, anim)``: the figure and a
+      :class:`matplotlib.animation.FuncAnimation` (e.g. ``anim.to_jshtml()``).
+    """
+    if radius is None:
+        raise ValueError("radius (N,) is required to draw particles to scale")
+    trajectories, labels = _panels(truth, prediction, titles)
+    trajectories, radius = _prepare(trajectories, radius, mask)
+    frames = _frame_indices(trajectories[0].shape[0], start, stop, stride)
+    scene = _Scene(list(zip(labels, trajectories)), radius, frame_dt=frame_dt, input_frames=input_frames,
+                   box_half_size=box_half_size, cmap=cmap, figsize=figsize, dpi=dpi)
+    anim = animation.FuncAnimation(scene.fig, scene.update, frames=frames, interval=1000.0 / fps, blit=False)
+    return scene.fig, anim
+
+
+def _rgb_frames(scene: _Scene, frames: Sequence[int]):
+    """Render each frame on the Agg canvas; yields ``(H, W, 3)`` uint8 arrays."""
+    canvas = scene.fig.canvas
+    for frame in frames:
+        scene.update(frame)
+        canvas.draw()
+        yield np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def _write_gif(scene: _Scene, frames: Sequence[int], path: str, fps: float) -> None:
+    from PIL import Image
+
+    # Frames are quantised to a palette as they are rendered (1 byte per pixel)
+    # so a 500-frame rollout does not sit in memory as RGBA.
+    images = (Image.fromarray(rgb).quantize(colors=256) for rgb in _rgb_frames(scene, frames))
+    first = next(images)
+    first.save(path, format="GIF", save_all=True, append_images=images, duration=int(round(1000.0 / fps)),
+               loop=0)
+
+
+def _write_mp4(scene: _Scene, frames: Sequence[int], path: str, fps: float, ffmpeg: str) -> None:
+    with matplotlib.rc_context({"animation.ffmpeg_path": ffmpeg}):
+        writer = animation.FFMpegWriter(fps=fps)
+        with writer.saving(scene.fig, path, scene.fig.dpi):
+            for frame in frames:
+                scene.update(frame)
+                writer.grab_frame()
+
+
+def save_rollout_animation(
+    path,
+    truth,
+    prediction=None,
+    radius=None,
+    *,
+    mp4: bool = True,
+    mask=None,
+    frame_dt: float | None = 1.5e-3,
+    input_frames: int | None = 6,
+    start: int = 0,
+    stop: int | None = None,
+    stride: int = 1,
+    fps: float = 20.0,
+    box_half_size: float | None = None,
+    titles: Sequence[str] = ("ground truth", "prediction"),
+    figsize=(9.0, 4.2),
+    dpi: float = 80,
+    cmap: str = "viridis",
+) -> dict[str, Any]:
+    """Write the side-by-side animation as a GIF, and as an MP4 if ffmpeg exists.
+
+    Args:
+      path: output path; its extension (``.gif``/``.mp4``, if any) is dropped
+        and ``<path>.gif`` and ``<path>.mp4`` are written.
+      mp4: also write the MP4 (needs ffmpeg: imageio-ffmpeg's binary or one
+        on ``PATH``; without one the MP4 is skipped and the reason returned).
+      Other arguments as in :func:`rollout_animation`.
+
+    Returns:
+      ``{"gif": path, "mp4": path or None, "frames": n, "mp4_skipped": reason
+      or None}``. Each file is written atomically. The GIF holds exactly
+      ``n`` frames (every frame differs: its title shows the time).
+    """
+    if radius is None:
+        raise ValueError("radius (N,) is required to draw particles to scale")
+    base = os.fspath(path)
+    if os.path.splitext(base)[1].lower() in (".gif", ".mp4"):
+        base = os.path.splitext(base)[0]
+    trajectories, labels = _panels(truth, prediction, titles)
+    trajectories, radius = _prepare(trajectories, radius, mask)
+    frames = _frame_indices(trajectories[0].shape[0], start, stop, stride)
+    scene = _Scene(list(zip(labels, trajectories)), radius, frame_dt=frame_dt, input_frames=input_frames,
+                   box_half_size=box_half_size, cmap=cmap, figsize=figsize, dpi=dpi)
+    result: dict[str, Any] = {"gif": None, "mp4": None, "frames": len(frames), "mp4_skipped": None}
+    result["gif"] = _atomic_write(base + ".gif", lambda tmp: _write_gif(scene, frames, tmp, fps))
+    if not mp4:
+        result["mp4_skipped"] = "not requested"
+    else:
+        ffmpeg = ffmpeg_executable()
+        if ffmpeg is None:
+            result["mp4_skipped"] = "no ffmpeg binary found (pip install imageio-ffmpeg, or put ffmpeg on PATH)"
+        else:
+            result["mp4"] = _atomic_write(base + ".mp4", lambda tmp: _write_mp4(scene, frames, tmp, fps, ffmpeg))
+    return result
+
+
+def frame_grid(
+    truth,
+    prediction=None,
+    radius=None,
+    frames: Sequence[int] = (0, 100, 200, 300, 400),
+    *,
+    mask=None,
+    frame_dt: float | None = 1.5e-3,
+    box_half_size: float | None = None,
+    row_labels: Sequence[str] = ("ground truth", "prediction"),
+    panel_size: float = 2.4,
+    dpi: float = 100,
+    cmap: str = "viridis",
+    path=None,
+) -> Figure:
+    """Still grid of snapshots like the paper's figures.
+
+    Rows are ground truth and prediction (one row if ``prediction`` is
+    ``None``), columns the requested frames (negative indices count from the
+    end), each titled with its time.
+
+    Args:
+      truth, prediction: ``(T, N, 2)`` normalised positions.
+      radius: ``(N,)`` normalised radii. frames: frame indices.
+      mask: optional ``(N,)`` bool. frame_dt: s per frame for the titles.
+      box_half_size: ``L`` in m to label radii in mm.
+      row_labels: labels of the rows. panel_size: inches per panel.
+      dpi: resolution. cmap: colour map for the radius.
+      path: if given, the PNG (or other extension) is written atomically.
+
+    Returns:
+      The figure, ``(len(frames) * panel_size + 1.2) x (rows * panel_size +
+      0.4)`` inches, so the image is that times ``dpi`` pixels.
+    """
+    if radius is None:
+        raise ValueError("radius (N,) is required to draw particles to scale")
+    trajectories, labels = _panels(truth, prediction, row_labels)
+    trajectories, radius = _prepare(trajectories, radius, mask)
+    n_frames = trajectories[0].shape[0]
+    frames = [int(f) for f in frames]
+    for f in frames:
+        if not -n_frames <= f < n_frames:
+            raise ValueError(f"frame {f} out of range for a trajectory of {n_frames} frames")
+    frames = [f % n_frames for f in frames]
+    if not frames:
+        raise ValueError("frames must name at least one frame")
+    colours, colour_label = _radius_scale(radius, box_half_size)
+    norm = _radius_norm(colours)
+    rows, cols = len(trajectories), len(frames)
+    fig = _new_figure((cols * panel_size + 1.2, rows * panel_size + 0.4), dpi, layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for r, (label, traj) in enumerate(zip(labels, trajectories)):
+        for c, frame in enumerate(frames):
+            ax = axes[r, c]
+            _box_axes(ax, _time_label(frame, frame_dt, None) if r == 0 else None)
+            _particles(ax, traj[frame], radius, colours, norm, cmap)
+            if c == 0:
+                ax.set_ylabel(label)
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=axes.ravel().tolist(), label=colour_label, shrink=0.8)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+# ----------------------------------------------------------------------------
+# curves
+# ----------------------------------------------------------------------------
+
+def _positive(values) -> np.ndarray:
+    """Float array with non-positive and non-finite entries hidden (log axes)."""
+    values = np.asarray(values, np.float64)
+    return np.where(np.isfinite(values) & (values > 0), values, np.nan)
+
+
+def _curve(value):
+    """A list, or a :func:`dispgns.metrics.summarize` entry ``{"mean", "std"}``."""
+    if isinstance(value, Mapping):
+        return np.asarray(value["mean"], np.float64), np.asarray(value.get("std", []), np.float64)
+    return np.asarray(value, np.float64), None
+
+
+def plot_error_curves(
+    curves: Mapping[str, Any],
+    *,
+    frame_dt: float | None = None,
+    ylabel: str = "MSE (normalised units$^2$)",
+    title: str | None = None,
+    figsize=(6.0, 4.0),
+    dpi: float = 100,
+    path=None,
+) -> Figure:
+    """Per-frame error curves on a log scale (model vs. baselines).
+
+    Args:
+      curves: label -> per-frame values over the predicted frames (entry ``k``
+        is ``k + 1`` model steps after the last input frame), as a list, or as
+        a ``{"mean": [...], "std": [...]}`` entry of
+        :func:`dispgns.metrics.summarize` (drawn with a ±std band).
+      frame_dt: s per frame: the x axis is then the time after the last input
+        frame in s, else the number of model steps.
+      ylabel, title, figsize, dpi: labels and size. path: write atomically.
+
+    Returns:
+      The figure. Non-positive values are left out (log scale).
+    """
+    fig = _new_figure(figsize, dpi, layout="constrained")
+    ax = fig.subplots()
+    for label, value in curves.items():
+        if value is None:
+            continue
+        mean, std = _curve(value)
+        steps = np.arange(1, mean.size + 1, dtype=np.float64)
+        x = steps * frame_dt if frame_dt is not None else steps
+        (line,) = ax.plot(x, _positive(mean), label=label)
+        if std is not None and std.size == mean.size:
+            ax.fill_between(x, _positive(mean - std), _positive(mean + std), color=line.get_color(), alpha=0.2,
+                            linewidth=0)
+    ax.set_yscale("log")
+    ax.set_xlabel("time after the last input frame (s)" if frame_dt is not None else "model steps")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="major", alpha=0.3)
+    if curves:
+        ax.legend()
+    if title:
+        ax.set_title(title)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+def plot_rollout_errors(metrics: Mapping[str, Any], *, frame_dt: float | None = None, title: str | None = None,
+                        path=None, **kwargs) -> Figure:
+    """Model vs. constant velocity vs. chaos floor from a metrics dict.
+
+    Args:
+      metrics: a :func:`dispgns.metrics.rollout_metrics` dict (or the
+        :func:`dispgns.metrics.summarize` of several): reads ``per_frame_mse``,
+        ``constant_velocity_per_frame_mse`` and, if present,
+        ``chaos_floor_per_frame_mse``.
+      frame_dt: s per frame (default: the dict's ``frame_dt`` if it holds one).
+      title, path, kwargs: as in :func:`plot_error_curves`.
+    """
+    if frame_dt is None and isinstance(metrics.get("frame_dt"), (int, float)):
+        frame_dt = float(metrics["frame_dt"])
+    curves = {
+        "model": metrics.get("per_frame_mse"),
+        "constant velocity": metrics.get("constant_velocity_per_frame_mse"),
+        "chaos floor (1e-6 L perturbation)": metrics.get("chaos_floor_per_frame_mse"),
+    }
+    curves = {label: value for label, value in curves.items() if value is not None}
+    return plot_error_curves(curves, frame_dt=frame_dt, title=title, path=path, **kwargs)
+
+
+def _running_mean(values: np.ndarray, window: int) -> np.ndarray:
+    if window <= 1 or values.size < window:
+        return values
+    kernel = np.ones(window) / window
+    valid = np.convolve(values, kernel, mode="valid")
+    return np.concatenate([np.full(window - 1, np.nan), valid])
+
+
+def plot_training_curve(
+    steps: Sequence[float],
+    loss: Sequence[float],
+    *,
+    validation: Mapping[str, tuple[Sequence[float], Sequence[float]]] | tuple[Sequence[float], Sequence[float]]
+    | None = None,
+    smooth: int = 0,
+    logy: bool = True,
+    title: str | None = None,
+    figsize=(6.0, 4.0),
+    dpi: float = 100,
+    path=None,
+) -> Figure:
+    """Training loss (and validation metrics) against the training step.
+
+    Args:
+      steps, loss: the training log as plain lists of equal length.
+      validation: ``(steps, values)`` for one validation series, or a mapping
+        label -> ``(steps, values)`` for several (e.g. one-step loss and
+        rollout MSE).
+      smooth: if > 1, also draw the running mean of the loss over this many
+        log entries (the raw loss is then drawn faint).
+      logy: log scale for the values. title, figsize, dpi: labels and size.
+      path: write atomically.
+    """
+    steps = np.asarray(steps, np.float64)
+    loss = np.asarray(loss, np.float64)
+    if steps.shape != loss.shape or steps.ndim != 1:
+        raise ValueError(f"steps and loss must be 1-D lists of equal length, got {steps.shape} and {loss.shape}")
+    fig = _new_figure(figsize, dpi, layout="constrained")
+    ax = fig.subplots()
+    transform = _positive if logy else (lambda v: np.asarray(v, np.float64))
+    if smooth > 1:
+        ax.plot(steps, transform(loss), color="C0", alpha=0.3, linewidth=0.8)
+        ax.plot(steps, transform(_running_mean(loss, smooth)), color="C0", label=f"training loss (mean of {smooth})")
+    else:
+        ax.plot(steps, transform(loss), color="C0", label="training loss")
+    if validation is not None:
+        series = {"validation": validation} if not isinstance(validation, Mapping) else dict(validation)
+        for i, (label, (val_steps, values)) in enumerate(series.items()):
+            val_steps = np.asarray(val_steps, np.float64)
+            values = np.asarray(values, np.float64)
+            if val_steps.shape != values.shape:
+                raise ValueError(f"validation {label!r}: steps {val_steps.shape} and values {values.shape} differ")
+            ax.plot(val_steps, transform(values), marker="o", markersize=3, color=f"C{i + 1}", label=label)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_xlabel("training step")
+    ax.set_ylabel("loss")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
