@@ -171,13 +171,13 @@ def row_hitting_the_floor(n=6, radius=5e-3):
 def test_collision_capacity_overflow_is_detected_and_recomputed(monkeypatch):
     x0, v0, radius = row_hitting_the_floor()
     capacities = []
-    original = integrate._advance_frames_batch_jit
+    original = integrate._advance_frames_jit
 
-    def spy(state, config, length, save_every, capacity):
+    def spy(state, neighbors, config, length, save_every, capacity, batched):
         capacities.append(capacity)
-        return original(state, config, length, save_every, capacity)
+        return original(state, neighbors, config, length, save_every, capacity, batched)
 
-    monkeypatch.setattr(integrate, "_advance_frames_batch_jit", spy)
+    monkeypatch.setattr(integrate, "_advance_frames_jit", spy)
     small = simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=1, chunk_frames=10)
     assert capacities[0] == 1 and max(capacities) > 1
     exact = simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=None)

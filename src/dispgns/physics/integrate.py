@@ -44,7 +44,6 @@ class SimState:
         exert no force and never collide.
       mass: ``(N,)`` kg, and ``external``: ``(N, D)`` buoyant weight in N,
         precomputed once because they do not change.
-      neighbors: jax-md dense neighbour list (``config.cutoff`` set) or ``None``.
       wall_hits: ``(2 D,)`` int32, cumulative wall crossings per wall (right,
         left, top, bottom in 2-D; a corner crossing counts on both walls).
       corner_events: int32, cumulative multi-axis crossings.
@@ -59,7 +58,6 @@ class SimState:
     mask: jnp.ndarray
     mass: jnp.ndarray
     external: jnp.ndarray
-    neighbors: partition.NeighborList | None
     wall_hits: jnp.ndarray
     corner_events: jnp.ndarray
     overflow: jnp.ndarray
@@ -86,27 +84,51 @@ def _park_padding(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfi
 def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFns:
     """jax-md cell-list neighbour function for ``config.cutoff`` (cached per config).
 
-    The list radius is ``cutoff + neighbor_skin`` and it is rebuilt once some
-    particle moved by more than a quarter of the skin, which leaves room for
-    the wall contact points (within one Euler displacement of the particle).
+    The list radius is ``cutoff + neighbor_skin``. Its ``update`` always
+    rebuilds; :func:`update_neighbors` decides when a rebuild is due (once
+    some particle moved by more than a quarter of the skin, which leaves room
+    for wall contact points within one Euler displacement of a particle).
     Positions are passed shifted by ``+L`` so that they lie in ``[0, 2L]``
     (the cell list hashes non-negative coordinates).
     """
     if config.cutoff is None:
         raise ValueError("neighbour lists need PhysicsConfig.cutoff to be set (got None = all pairs)")
     displacement, _ = space.free()
-    half_skin = 0.5 * config.neighbor_skin
     # Padding particles are parked beyond 3L; the cell grid only needs to cover
     # the box, jax-md wraps outside cells and the distance test rejects them.
     box = 2.0 * config.box_half_size
     return partition.neighbor_list(
         displacement,
         box,
-        r_cutoff=config.cutoff + half_skin,
-        dr_threshold=half_skin,
+        r_cutoff=config.cutoff + config.neighbor_skin,
+        dr_threshold=0.0,
         capacity_multiplier=1.25,
         format=partition.NeighborListFormat.Dense,
     )
+
+
+@functools.lru_cache(maxsize=None)
+def _cell_list_fn_for(config: PhysicsConfig, cell_size: float) -> partition.CellListFns:
+    return partition.cell_list(2.0 * config.box_half_size, cell_size, 1.25)
+
+
+def update_neighbors(neighbors: partition.NeighborList, position: jnp.ndarray, config: PhysicsConfig):
+    """Rebuild ``neighbors`` if any particle moved more than ``neighbor_skin / 4``.
+
+    Works on one list (``position (N, D)``) or a stack of lists
+    (``position (B, N, D)``); for a stack the decision is taken once for the
+    whole batch, so the rebuild is skipped, not merely masked, on most steps.
+    Positions are in m, in the box frame (the shift into the cell-list frame
+    happens here).
+    """
+    shifted = position + config.box_half_size
+    moved = jnp.sum((shifted - neighbors.reference_position) ** 2, axis=-1)
+    due = jnp.max(moved) > (0.25 * config.neighbor_skin) ** 2
+    if position.ndim == 2:
+        rebuild = lambda: neighbors.update(shifted)
+    else:
+        rebuild = lambda: jax.vmap(lambda x, nbrs: nbrs.update(x))(shifted, neighbors)
+    return lax.cond(due, rebuild, lambda: neighbors)
 
 
 def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = None):
@@ -123,16 +145,18 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
     Returns:
       ``(init_fn, step_fn)``:
 
-      * ``init_fn(position, velocity, radius, mask=None, neighbors=None)``
-        builds a :class:`SimState`. With ``config.cutoff`` set, pass a
-        neighbour list allocated outside ``jit`` by
-        ``neighbor_fn_for(config, D).allocate(position + L)`` for linear
-        cost; without one, pairs are still cut off at ``config.cutoff`` but
-        found by the all-pairs ``N x N`` path.
-      * ``step_fn(state)`` advances one Euler step of ``config.dt`` seconds.
+      * ``init_fn(position, velocity, radius, mask=None)`` builds a
+        :class:`SimState`.
+      * ``step_fn(state, neighbors=None)`` advances one Euler step of
+        ``config.dt`` seconds. With ``config.cutoff`` set, pass a jax-md
+        neighbour list for linear cost: allocate it outside ``jit`` with
+        ``neighbor_fn_for(config, D).allocate(position + L)`` and refresh it
+        before every step with :func:`update_neighbors`, checking
+        ``did_buffer_overflow`` afterwards. Without one, pairs are still cut
+        off at ``config.cutoff`` but found by the all-pairs ``N x N`` path.
     """
 
-    def init_fn(position, velocity, radius, mask=None, neighbors=None) -> SimState:
+    def init_fn(position, velocity, radius, mask=None) -> SimState:
         position = jnp.asarray(position)
         dtype = position.dtype
         velocity = jnp.asarray(velocity, dtype)
@@ -150,21 +174,16 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
             mask=mask,
             mass=particle_mass(radius, config, dim),
             external=external_force(radius, config, dim),
-            neighbors=neighbors,
             wall_hits=jnp.zeros((2 * dim,), jnp.int32),
             corner_events=jnp.zeros((), jnp.int32),
             overflow=jnp.zeros((), bool),
             step=jnp.zeros((), jnp.int32),
         )
 
-    def step_fn(state: SimState) -> SimState:
+    def step_fn(state: SimState, neighbors: partition.NeighborList | None = None) -> SimState:
         x, v, a, mask = state.position, state.velocity, state.radius, state.mask
         n = x.shape[0]
-        neighbors = state.neighbors
-        neighbor_idx = None
-        if neighbors is not None:
-            neighbors = neighbors.update(x + config.box_half_size)
-            neighbor_idx = neighbors.idx
+        neighbor_idx = None if neighbors is None else neighbors.idx
 
         def force_at(query, query_index):
             return interaction_force(query, query_index, x, a, mask, config, neighbor_idx)
@@ -182,7 +201,6 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         return state.set(
             position=jnp.where(select, walls.position, x),
             velocity=jnp.where(select, walls.velocity, v),
-            neighbors=neighbors,
             wall_hits=state.wall_hits + walls.wall_hits.astype(jnp.int32),
             corner_events=state.corner_events + walls.corner_events.astype(jnp.int32),
             overflow=state.overflow | walls.overflow,
@@ -192,20 +210,29 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
     return init_fn, step_fn
 
 
-def _advance_frames(state: SimState, config: PhysicsConfig, n_frames: int, save_every: int, collision_capacity):
-    """Run ``n_frames * save_every`` steps; return the final state and every frame's (x, v)."""
+def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames: int, save_every: int,
+                    collision_capacity, batched: bool):
+    """Run ``n_frames * save_every`` steps of one state or a stacked batch of states.
+
+    Returns ``((state, neighbors), (xs, vs))`` with frames stacked on axis 0.
+    """
     _, step_fn = euler_integrator(config, collision_capacity=collision_capacity)
+    step = jax.vmap(step_fn) if batched else step_fn
 
-    def frame(state, _):
-        state = lax.fori_loop(0, save_every, lambda _, s: step_fn(s), state)
-        return state, (state.position, state.velocity)
+    def one_step(_, carry):
+        state, neighbors = carry
+        if neighbors is not None:
+            neighbors = update_neighbors(neighbors, state.position, config)
+        return step(state, neighbors), neighbors
 
-    return lax.scan(frame, state, None, length=n_frames)
+    def frame(carry, _):
+        carry = lax.fori_loop(0, save_every, one_step, carry)
+        return carry, (carry[0].position, carry[0].velocity)
+
+    return lax.scan(frame, (state, neighbors), None, length=n_frames)
 
 
-_advance_frames_batch_jit = jax.jit(
-    jax.vmap(_advance_frames, in_axes=(0, None, None, None, None)), static_argnums=(1, 2, 3, 4)
-)
+_advance_frames_jit = jax.jit(_advance_frames, static_argnums=(2, 3, 4, 5, 6))
 
 
 def _is_traced(*arrays) -> bool:
@@ -294,7 +321,7 @@ def simulate(
         capacity = None if collision_capacity == "auto" else collision_capacity
         init_fn, _ = euler_integrator(config, collision_capacity=capacity)
         state = init_fn(x0, v0, radius, mask)
-        final, (xs, vs) = _advance_frames(state, config, n_frames - 1, save_every, capacity)
+        (final, _), (xs, vs) = _advance_frames(state, None, config, n_frames - 1, save_every, capacity, False)
         # A traced run cannot grow capacity: poison the result rather than return a wrong one.
         poison = jnp.where(final.overflow, jnp.nan, 0.0)
         xs, vs = xs + poison, vs + poison
@@ -356,6 +383,10 @@ def _allocate_neighbors(position: jnp.ndarray, mask: jnp.ndarray, config: Physic
     ]
     lists = [neighbor_fn.allocate(x, extra_capacity=extra_capacity) for x in shifted]
     template = max(lists, key=lambda nbrs: (nbrs.max_occupancy, nbrs.cell_list_capacity or 0))
+    if template.cell_list_fn is not None:
+        # jax-md makes new cell-list closures on every allocation; they are
+        # static pytree fields, so reuse one per config or every call recompiles.
+        template = md_dataclasses.replace(template, cell_list_fn=_cell_list_fn_for(config, template.cell_size))
     updated = [neighbor_fn.update(x, template) for x in shifted]
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *updated)
 
@@ -373,31 +404,29 @@ def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacit
     neighbor_extra = 0
     neighbors = _allocate_neighbors(x0, mask, config, neighbor_extra) if config.cutoff is not None else None
     init_fn, _ = euler_integrator(config)
-    state = jax.vmap(init_fn)(x0, v0, radius, mask, neighbors)
+    state = jax.vmap(init_fn)(x0, v0, radius, mask)
     frames_x, frames_v = [], []
     done = 0
     # Every chunk has the same length (one compilation); the last one may run
     # past n_frames and its extra frames are dropped.
     length = max(1, min(chunk_frames, n_frames - 1))
     while done < n_frames - 1:
-        new_state, (xs, vs) = _advance_frames_batch_jit(state, config, length, save_every, capacity)
+        (new_state, new_neighbors), (xs, vs) = _advance_frames_jit(
+            state, neighbors, config, length, save_every, capacity, True)
         grow_collisions = bool(np.any(np.asarray(new_state.overflow)))
-        grow_neighbors = _neighbor_overflow(new_state.neighbors)
+        grow_neighbors = _neighbor_overflow(new_neighbors)
         if grow_collisions or grow_neighbors:
+            # Redo the chunk from its start with the larger capacity.
             if grow_collisions:
                 capacity = min(n, 2 * capacity)
             if grow_neighbors:
                 neighbor_extra = max(8, 2 * neighbor_extra)
                 neighbors = _allocate_neighbors(state.position, mask, config, neighbor_extra)
-            else:
-                neighbors = state.neighbors
-            # Redo the chunk from its start with the larger capacity.
-            state = state.set(neighbors=neighbors, overflow=jnp.zeros_like(state.overflow))
             continue
-        state = new_state
+        state, neighbors = new_state, new_neighbors
         keep = min(length, n_frames - 1 - done)
-        frames_x.append(xs[:, :keep])
-        frames_v.append(vs[:, :keep])
+        frames_x.append(jnp.swapaxes(xs[:keep], 0, 1))
+        frames_v.append(jnp.swapaxes(vs[:keep], 0, 1))
         done += keep
         if progress is not None:
             progress(done)
