@@ -11,6 +11,7 @@ from dispgns.physics import (
     simulate_batch,
 )
 from dispgns.metrics import chaos_floor_rollout, constant_velocity_rollout, rollout_metrics, summarize
+from dispgns.data import DatasetError, DatasetMetadata, Trajectory, generate_dataset, load_dataset
 
 __all__ = [
     "__version__",
@@ -24,4 +25,9 @@ __all__ = [
     "summarize",
     "constant_velocity_rollout",
     "chaos_floor_rollout",
+    "Trajectory",
+    "DatasetMetadata",
+    "DatasetError",
+    "load_dataset",
+    "generate_dataset",
 ]

@@ -1,0 +1,669 @@
+"""The dispgns dataset format: one HDF5 file per split plus ``metadata.json``.
+
+A dataset directory holds ``train.h5``, ``valid.h5``, ``test.h5`` and
+``test_unseen.h5`` (any subset) and ``metadata.json``. Each split file has one
+group per trajectory, named ``00000``, ``00001``, ..., holding:
+
+============================ =========== ======= ===============================
+dataset                      shape       dtype   content
+============================ =========== ======= ===============================
+``position``                 (T, N, D)   float32 centres / L (box ``[-1, 1]^D``)
+``radius``                   (N,)        float32 radii / L
+``particle_type``            (N,)        int     zeros (LagrangeBench-style readers)
+``initial_position``         (N, D)      float64 centres in m the physics started from
+``initial_velocity``         (N, D)      float64 velocities in m/s it started from
+``initial_radius``           (N,)        float64 radii in m it ran with
+============================ =========== ======= ===============================
+
+The three ``initial_*`` datasets are present together or not at all (imported
+data has no initial state, so it cannot be re-run). Group attributes carry
+provenance (seed, split, index, radii list, ...).
+
+Every file is written under a temporary name in its target directory and
+renamed into place, so a reader never sees a half-written file. Every reader
+validates what it reads and raises :class:`DatasetError` naming the file,
+the trajectory and field, and the expected value.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import math
+import os
+import shutil
+import tempfile
+import uuid
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping, Sequence
+
+import h5py
+import numpy as np
+
+from dispgns.physics import PhysicsConfig
+
+FORMAT_VERSION = 1
+SPLITS = ("train", "valid", "test", "test_unseen")
+METADATA_FILE = "metadata.json"
+# Centres lie in [-1 + a, 1 - a]; the tolerance only absorbs float32 rounding
+# and the tiny overshoot of the authors' collision handling.
+BOX_TOLERANCE = 1e-4
+# position[0] is the float32 image of initial_position / L.
+INITIAL_STATE_TOLERANCE = 1e-5
+
+
+class DatasetError(ValueError):
+    """A dataset file or its metadata is missing, malformed or inconsistent."""
+
+
+def split_filename(split: str) -> str:
+    """``"train"`` -> ``"train.h5"``."""
+    return f"{split}.h5"
+
+
+def trajectory_name(index: int) -> str:
+    """``3`` -> ``"00003"``: the HDF5 group name of trajectory ``index``."""
+    return f"{index:05d}"
+
+
+# ----------------------------------------------------------------------------- trajectories
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Trajectory:
+    """One stored trajectory (numpy arrays, not copied).
+
+    Attributes:
+      position: ``(T, N, D)`` float32 centres normalised by L (box ``[-1, 1]^D``).
+      radius: ``(N,)`` float32 radii normalised by L.
+      initial_position: ``(N, D)`` float64 centres in m the physics was
+        started from, or ``None`` (imported data).
+      initial_velocity: ``(N, D)`` float64 velocities in m/s, or ``None``.
+      initial_radius: ``(N,)`` float64 radii in m the physics ran with (the
+        exact values from the radii list), or ``None``.
+      particle_type: ``(N,)`` integer, zeros.
+      attrs: provenance (JSON-compatible values), e.g. ``seed``, ``split``,
+        ``index``, ``radii_m``.
+    """
+
+    position: np.ndarray
+    radius: np.ndarray
+    initial_position: np.ndarray | None = None
+    initial_velocity: np.ndarray | None = None
+    initial_radius: np.ndarray | None = None
+    particle_type: np.ndarray | None = None
+    attrs: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.particle_type is None:
+            n = np.shape(self.radius)[0] if np.ndim(self.radius) >= 1 else 0
+            object.__setattr__(self, "particle_type", np.zeros((n,), np.int32))
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.position.shape[0])
+
+    @property
+    def n_particles(self) -> int:
+        return int(self.position.shape[1])
+
+    @property
+    def dim(self) -> int:
+        return int(self.position.shape[2])
+
+    @property
+    def has_initial_state(self) -> bool:
+        return self.initial_position is not None
+
+
+_INITIAL_FIELDS = ("initial_position", "initial_velocity", "initial_radius")
+
+
+def _fail(where: str, message: str):
+    raise DatasetError(f"{where}: {message}")
+
+
+def _check_array(where: str, name: str, value, shape: tuple, kind: str, dtype=None) -> np.ndarray:
+    """Check one field's type, shape (``None`` = any size) and dtype; return it as an array."""
+    if not isinstance(value, np.ndarray):
+        _fail(where, f"'{name}' must be a numpy array, got {type(value).__name__}")
+    shown = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+    if value.ndim != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+        _fail(where, f"'{name}' has shape {value.shape}, expected {shown}")
+    if dtype is not None and value.dtype != np.dtype(dtype):
+        _fail(where, f"'{name}' has dtype {value.dtype}, expected {np.dtype(dtype)}")
+    if kind == "int" and not np.issubdtype(value.dtype, np.integer):
+        _fail(where, f"'{name}' has dtype {value.dtype}, expected an integer dtype")
+    if kind == "float" and not np.all(np.isfinite(value)):
+        bad = np.argwhere(~np.isfinite(value))[0]
+        _fail(where, f"'{name}' has a non-finite value {value[tuple(bad)]} at index {tuple(int(i) for i in bad)}, "
+                     f"expected finite values")
+    return value
+
+
+def validate_trajectory(trajectory: Trajectory, where: str, *, dim: int | None = None,
+                        n_frames: int | None = None, box_half_size: float | None = None) -> None:
+    """Check every field of ``trajectory``; raise :class:`DatasetError` prefixed with ``where``.
+
+    Args:
+      trajectory: the trajectory to check.
+      where: the location used in messages, e.g. ``"train.h5: trajectory 00003"``.
+      dim, n_frames: expected ``D`` and ``T`` (``None``: not checked).
+      box_half_size: L in m, to check that the initial state lies in the box
+        and agrees with ``position[0]`` (``None``: not checked).
+    """
+    position = _check_array(where, "position", trajectory.position, (n_frames, None, dim), "float", np.float32)
+    t, n, d = position.shape
+    if t < 1 or n < 1 or d < 1:
+        _fail(where, f"'position' has shape {position.shape}, expected at least one frame, particle and axis")
+    outside = np.abs(position) > 1.0 + BOX_TOLERANCE
+    if outside.any():
+        frame, particle, axis = (int(i) for i in np.argwhere(outside)[0])
+        _fail(where, f"'position' frame {frame} particle {particle} axis {axis} is "
+                     f"{position[frame, particle, axis]:.6g}, expected inside the box [-1, 1]")
+    radius = _check_array(where, "radius", trajectory.radius, (n,), "float", np.float32)
+    if not np.all((radius > 0) & (radius < 1)):
+        bad = int(np.argmax(~((radius > 0) & (radius < 1))))
+        _fail(where, f"'radius' of particle {bad} is {radius[bad]:.6g}, expected 0 < radius / L < 1")
+    _check_array(where, "particle_type", trajectory.particle_type, (n,), "int")
+    present = [name for name in _INITIAL_FIELDS if getattr(trajectory, name) is not None]
+    if present and len(present) != len(_INITIAL_FIELDS):
+        missing = [name for name in _INITIAL_FIELDS if name not in present]
+        _fail(where, f"missing field {missing[0]!r}, expected all of {list(_INITIAL_FIELDS)} or none")
+    if not present:
+        return
+    x0 = _check_array(where, "initial_position", trajectory.initial_position, (n, d), "float", np.float64)
+    _check_array(where, "initial_velocity", trajectory.initial_velocity, (n, d), "float", np.float64)
+    a0 = _check_array(where, "initial_radius", trajectory.initial_radius, (n,), "float", np.float64)
+    if not np.all(a0 > 0):
+        bad = int(np.argmax(~(a0 > 0)))
+        _fail(where, f"'initial_radius' of particle {bad} is {a0[bad]:.6g} m, expected > 0")
+    if box_half_size is not None:
+        scaled = x0 / box_half_size
+        if np.any(np.abs(scaled) > 1.0 + BOX_TOLERANCE):
+            particle, axis = (int(i) for i in np.argwhere(np.abs(scaled) > 1.0 + BOX_TOLERANCE)[0])
+            _fail(where, f"'initial_position' particle {particle} axis {axis} is {x0[particle, axis]:.6g} m, "
+                         f"expected inside the box [-{box_half_size}, {box_half_size}] m")
+        gap = np.abs(scaled - position[0])
+        if np.any(gap > INITIAL_STATE_TOLERANCE):
+            particle, axis = (int(i) for i in np.argwhere(gap > INITIAL_STATE_TOLERANCE)[0])
+            _fail(where, f"'initial_position' / L differs from 'position' frame 0 by {gap.max():.3g} "
+                         f"(particle {particle}, axis {axis}), expected at most {INITIAL_STATE_TOLERANCE}")
+        radius_gap = np.abs(a0 / box_half_size - radius)
+        if np.any(radius_gap > INITIAL_STATE_TOLERANCE):
+            particle = int(np.argmax(radius_gap))
+            _fail(where, f"'initial_radius' / L differs from 'radius' by {radius_gap.max():.3g} "
+                         f"(particle {particle}), expected at most {INITIAL_STATE_TOLERANCE}")
+
+
+# ----------------------------------------------------------------------------- metadata
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetMetadata:
+    """Everything a reader needs to interpret a dataset directory (``metadata.json``).
+
+    Attributes:
+      dim: spatial dimension D.
+      sequence_length: frames per trajectory T.
+      frame_dt: time between stored frames in s (``save_every * physics.dt``).
+      save_every: Euler steps between stored frames.
+      box_half_size: L in m; stored positions and radii are divided by it.
+      connectivity_radius: default graph radius in normalised units
+        (4 x the largest training radius / L; 0.2 for the paper).
+      trajectory_counts: trajectories per split, e.g. ``{"train": 16, ...}``.
+      radii: per split, the radii groups the trajectories were drawn from:
+        a list of ``{"count", "radii_m", "radii_mm"}`` mappings.
+      physics: the full :class:`PhysicsConfig` as a dict
+        (see :attr:`physics_config`).
+      has_initial_state: whether every trajectory stores the SI initial state
+        the physics was started from (so it can be re-run).
+      seed: the generation seed, or ``None`` (imported data).
+      key_derivation: how each trajectory's PRNG key derives from ``seed``.
+      split_ids: the integer folded into the key for each split.
+      precision: ``"float32"`` or ``"float64"``, the simulation precision
+        (``None`` when unknown).
+      source: ``"generated"`` or a description of the imported file(s).
+      preset: the preset name the dataset was generated from, if any.
+      particle_counts: per split, the particle count N of every trajectory
+        (``None``: not recorded).
+      bounds: ``((-1, 1),) * D``, the normalised box.
+      dispgns_version: version of dispgns that wrote the dataset.
+      format_version: version of this format.
+    """
+
+    dim: int
+    sequence_length: int
+    frame_dt: float
+    save_every: int
+    box_half_size: float
+    connectivity_radius: float
+    trajectory_counts: Mapping[str, int]
+    radii: Mapping[str, Sequence[Mapping[str, Any]]]
+    physics: Mapping[str, Any]
+    has_initial_state: bool = True
+    seed: int | None = None
+    key_derivation: str | None = None
+    split_ids: Mapping[str, int] | None = None
+    precision: str | None = None
+    source: str = "generated"
+    preset: str | None = None
+    particle_counts: Mapping[str, Sequence[int]] | None = None
+    bounds: tuple[tuple[float, float], ...] | None = None
+    dispgns_version: str | None = None
+    format_version: int = FORMAT_VERSION
+
+    def __post_init__(self):
+        if self.bounds is None:
+            object.__setattr__(self, "bounds", tuple((-1.0, 1.0) for _ in range(self.dim)))
+        else:
+            object.__setattr__(self, "bounds", tuple(tuple(float(v) for v in pair) for pair in self.bounds))
+        if self.dispgns_version is None:
+            from dispgns import __version__
+
+            object.__setattr__(self, "dispgns_version", __version__)
+        self.validate()
+
+    @property
+    def physics_config(self) -> PhysicsConfig:
+        """The stored physics parameters as a :class:`PhysicsConfig`."""
+        return PhysicsConfig.from_dict(dict(self.physics))
+
+    @property
+    def splits(self) -> tuple[str, ...]:
+        """The splits present, in the canonical order."""
+        return tuple(s for s in SPLITS if s in self.trajectory_counts)
+
+    def validate(self, where: str = METADATA_FILE) -> None:
+        """Check the fields' values and their mutual consistency."""
+        def need(condition, message):
+            if not condition:
+                _fail(where, message)
+
+        need(isinstance(self.dim, int) and self.dim in (2, 3), f"'dim' is {self.dim!r}, expected 2 or 3")
+        need(isinstance(self.sequence_length, int) and self.sequence_length >= 1,
+             f"'sequence_length' is {self.sequence_length!r}, expected an integer >= 1")
+        need(isinstance(self.save_every, int) and self.save_every >= 1,
+             f"'save_every' is {self.save_every!r}, expected an integer >= 1")
+        for name in ("frame_dt", "box_half_size", "connectivity_radius"):
+            value = getattr(self, name)
+            need(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+                 f"'{name}' is {value!r}, expected a finite number > 0")
+        need(self.format_version == FORMAT_VERSION,
+             f"'format_version' is {self.format_version!r}, expected {FORMAT_VERSION} (this dispgns reads "
+             f"format {FORMAT_VERSION} only)")
+        need(self.bounds == tuple((-1.0, 1.0) for _ in range(self.dim)),
+             f"'bounds' is {self.bounds!r}, expected {[[-1.0, 1.0]] * self.dim}")
+        need(isinstance(self.trajectory_counts, Mapping) and len(self.trajectory_counts) > 0,
+             f"'trajectory_counts' is {self.trajectory_counts!r}, expected a mapping split -> count")
+        for split, count in self.trajectory_counts.items():
+            need(split in SPLITS, f"'trajectory_counts' has unknown split {split!r}, expected one of {list(SPLITS)}")
+            need(isinstance(count, int) and count >= 1,
+                 f"'trajectory_counts'[{split!r}] is {count!r}, expected an integer >= 1")
+        need(isinstance(self.radii, Mapping) and set(self.radii) == set(self.trajectory_counts),
+             f"'radii' has splits {sorted(self.radii) if isinstance(self.radii, Mapping) else self.radii!r}, "
+             f"expected {sorted(self.trajectory_counts)}")
+        for split, groups in self.radii.items():
+            total = 0
+            for group in groups:
+                need(isinstance(group, Mapping) and {"count", "radii_m"} <= set(group),
+                     f"'radii'[{split!r}] entry {group!r}, expected a mapping with 'count' and 'radii_m'")
+                total += group["count"]
+            need(total == self.trajectory_counts[split],
+                 f"'radii'[{split!r}] groups hold {total} trajectories, expected "
+                 f"{self.trajectory_counts[split]} (trajectory_counts)")
+        if self.particle_counts is not None:
+            need(isinstance(self.particle_counts, Mapping) and set(self.particle_counts) == set(self.trajectory_counts),
+                 f"'particle_counts' has splits {sorted(self.particle_counts)}, expected "
+                 f"{sorted(self.trajectory_counts)}")
+            for split, values in self.particle_counts.items():
+                need(len(values) == self.trajectory_counts[split]
+                     and all(isinstance(v, int) and v >= 1 for v in values),
+                     f"'particle_counts'[{split!r}] is {list(values)}, expected "
+                     f"{self.trajectory_counts[split]} integers >= 1")
+        try:
+            config = self.physics_config
+        except (TypeError, ValueError) as error:
+            _fail(where, f"'physics' is not a valid PhysicsConfig: {error}")
+        need(math.isclose(config.box_half_size, self.box_half_size, rel_tol=1e-12),
+             f"'box_half_size' is {self.box_half_size}, expected physics.box_half_size = {config.box_half_size}")
+        need(math.isclose(self.frame_dt, self.save_every * config.dt, rel_tol=1e-9),
+             f"'frame_dt' is {self.frame_dt}, expected save_every * physics.dt = {self.save_every * config.dt}")
+        need(self.precision in (None, "float32", "float64"),
+             f"'precision' is {self.precision!r}, expected 'float32', 'float64' or null")
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-compatible dict (lists instead of tuples)."""
+        return {
+            "format_version": self.format_version,
+            "dispgns_version": self.dispgns_version,
+            "source": self.source,
+            "preset": self.preset,
+            "dim": self.dim,
+            "bounds": [list(pair) for pair in self.bounds],
+            "box_half_size": self.box_half_size,
+            "frame_dt": self.frame_dt,
+            "save_every": self.save_every,
+            "sequence_length": self.sequence_length,
+            "connectivity_radius": self.connectivity_radius,
+            "trajectory_counts": {s: self.trajectory_counts[s] for s in self.splits},
+            "radii": {s: [dict(group) for group in self.radii[s]] for s in self.splits},
+            "has_initial_state": self.has_initial_state,
+            "precision": self.precision,
+            "seed": self.seed,
+            "key_derivation": self.key_derivation,
+            "split_ids": None if self.split_ids is None else dict(self.split_ids),
+            "particle_counts": None if self.particle_counts is None
+            else {s: list(self.particle_counts[s]) for s in self.splits},
+            "physics": dict(self.physics),
+        }
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any], where: str = METADATA_FILE) -> "DatasetMetadata":
+        """Inverse of :meth:`to_dict`; raises :class:`DatasetError` on missing or unknown fields."""
+        if not isinstance(values, Mapping):
+            _fail(where, f"expected a JSON object, got {type(values).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(fields))
+        if unknown:
+            _fail(where, f"unknown field(s) {unknown}, expected a subset of {sorted(fields)}")
+        required = [name for name, f in fields.items()
+                    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+        for name in required:
+            if name not in values:
+                _fail(where, f"missing field {name!r}")
+        values = dict(values)
+        if values.get("bounds") is not None:
+            values["bounds"] = tuple(tuple(pair) for pair in values["bounds"])
+        try:
+            return cls(**values)
+        except DatasetError as error:
+            raise DatasetError(str(error).replace(METADATA_FILE, where, 1)) from None
+        except (TypeError, ValueError) as error:
+            _fail(where, str(error))
+
+    def expected_for(self, split: str) -> dict[str, Any]:
+        """``{"dim", "n_frames", "count"[, "particles"]}`` the file of ``split`` must match."""
+        if split not in self.trajectory_counts:
+            raise DatasetError(f"{METADATA_FILE}: no split {split!r}; the dataset has {list(self.splits)}")
+        expected = {"dim": self.dim, "n_frames": self.sequence_length, "count": self.trajectory_counts[split]}
+        if self.particle_counts is not None:
+            expected["particles"] = list(self.particle_counts[split])
+        return expected
+
+
+# ----------------------------------------------------------------------------- atomic writes
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _temporary_path(target: Path) -> Path:
+    fd, name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    os.close(fd)
+    # mkstemp makes the file private (0600); the final file gets the usual umask permissions.
+    os.chmod(name, 0o666 & ~_umask())
+    return Path(name)
+
+
+def _json_value(value):
+    """HDF5 attributes come back as numpy values; make them plain Python for ``attrs``."""
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory], *,
+                box_half_size: float | None = None) -> Path:
+    """Validate and write one split file atomically.
+
+    The file is written under a temporary name in the same directory and
+    renamed over ``path`` only once complete; on error nothing is left behind.
+
+    Args:
+      path: target ``.h5`` file.
+      trajectories: the trajectories, stored as groups ``00000``, ``00001``, ...
+      box_half_size: L in m, to also check each initial state against its
+        normalised positions (recommended).
+
+    Returns:
+      ``path`` as a :class:`~pathlib.Path`.
+    """
+    path = Path(path)
+    trajectories = list(trajectories)
+    if not trajectories:
+        raise DatasetError(f"{path.name}: no trajectories to write, expected at least one")
+    dim = trajectories[0].position.shape[-1] if np.ndim(trajectories[0].position) == 3 else None
+    for index, trajectory in enumerate(trajectories):
+        validate_trajectory(trajectory, f"{path.name}: trajectory {trajectory_name(index)}", dim=dim,
+                            box_half_size=box_half_size)
+    temporary = _temporary_path(path)
+    try:
+        with h5py.File(temporary, "w") as file:
+            file.attrs["format_version"] = FORMAT_VERSION
+            for index, trajectory in enumerate(trajectories):
+                group = file.create_group(trajectory_name(index))
+                group.create_dataset("position", data=trajectory.position)
+                group.create_dataset("radius", data=trajectory.radius)
+                group.create_dataset("particle_type", data=trajectory.particle_type)
+                if trajectory.has_initial_state:
+                    for name in _INITIAL_FIELDS:
+                        group.create_dataset(name, data=getattr(trajectory, name))
+                for key, value in trajectory.attrs.items():
+                    # HDF5 has no null: absent attributes read back as absent.
+                    if value is not None:
+                        group.attrs[key] = value
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_metadata(directory: str | os.PathLike, metadata: DatasetMetadata) -> Path:
+    """Write ``metadata.json`` into ``directory`` atomically; returns its path."""
+    path = Path(directory) / METADATA_FILE
+    metadata.validate()
+    text = json.dumps(metadata.to_dict(), indent=2) + "\n"
+    temporary = _temporary_path(path)
+    try:
+        temporary.write_text(text)
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _check_target(out_dir: Path, overwrite: bool) -> None:
+    if out_dir.exists() or out_dir.is_symlink():
+        if not out_dir.is_dir():
+            raise FileExistsError(f"{out_dir} exists and is not a directory")
+        if any(out_dir.iterdir()):
+            if not overwrite:
+                raise FileExistsError(f"{out_dir} exists and is not empty; choose another directory or "
+                                      f"allow overwriting it (overwrite=True, --overwrite)")
+            if not (out_dir / METADATA_FILE).is_file():
+                raise FileExistsError(f"refusing to overwrite {out_dir}: it is not a dispgns dataset "
+                                      f"(no {METADATA_FILE})")
+
+
+def _move_into_place(staging: Path, out_dir: Path) -> None:
+    """Rename the finished ``staging`` directory to ``out_dir`` (replacing an old dataset)."""
+    if out_dir.is_dir() and not any(out_dir.iterdir()):
+        out_dir.rmdir()
+    if not out_dir.exists():
+        os.replace(staging, out_dir)
+        return
+    old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
+    os.replace(out_dir, old)
+    try:
+        os.replace(staging, out_dir)
+    except BaseException:
+        os.replace(old, out_dir)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+    """Build a dataset directory atomically.
+
+    Yields a fresh temporary directory beside ``out_dir`` (same file system);
+    when the block finishes it is renamed to ``out_dir``, and when the block
+    raises it is removed together with any parent directories created for it.
+
+    ``out_dir`` may be missing or empty; a non-empty one is replaced only with
+    ``overwrite`` and only if it holds a dispgns dataset (``metadata.json``),
+    and only once the new one is complete.
+
+    Raises:
+      FileExistsError: ``out_dir`` holds something that may not be replaced.
+      OSError: the parent directory cannot be written.
+    """
+    out_dir = Path(out_dir).absolute()
+    _check_target(out_dir, overwrite)
+    created = []
+    for parent in reversed(out_dir.parents):
+        if not parent.exists():
+            parent.mkdir()
+            created.append(parent)
+    try:
+        staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
+        try:
+            # mkdtemp makes the directory private (0700); the dataset gets the usual umask permissions.
+            os.chmod(staging, 0o777 & ~_umask())
+            yield staging
+            _move_into_place(staging, out_dir)
+        finally:
+            if staging.exists():
+                shutil.rmtree(staging, ignore_errors=True)
+    except BaseException:
+        for parent in reversed(created):
+            with contextlib.suppress(OSError):
+                parent.rmdir()
+        raise
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_metadata(directory: str | os.PathLike) -> DatasetMetadata:
+    """Read and validate ``directory/metadata.json``."""
+    path = Path(directory) / METADATA_FILE
+    where = str(path)
+    if not path.is_file():
+        raise DatasetError(f"{where}: not found; expected a dispgns dataset directory with {METADATA_FILE}")
+    try:
+        values = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DatasetError(f"{where}: cannot be read as JSON: {error}") from None
+    return DatasetMetadata.from_dict(values, where=where)
+
+
+def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None) -> list[Trajectory]:
+    """Read and validate every trajectory of one split file.
+
+    Args:
+      path: the ``.h5`` file; its stem names the split (``train.h5`` -> train).
+      metadata: when given, the file must agree with it: dimension, sequence
+        length, trajectory count, presence of the initial state, and the
+        initial state must lie in the box and match frame 0.
+
+    Returns:
+      The trajectories in group order (``00000``, ``00001``, ...).
+    """
+    path = Path(path)
+    name = path.name
+    expected = metadata.expected_for(path.stem) if metadata is not None else {}
+    if not path.is_file():
+        raise DatasetError(f"{name}: file not found at {path}")
+    try:
+        file = h5py.File(path, "r")
+    except OSError as error:
+        raise DatasetError(f"{name}: cannot be opened as HDF5: {error}") from None
+    trajectories = []
+    with file:
+        groups = sorted(file.keys())
+        if "count" in expected and len(groups) != expected["count"]:
+            _fail(name, f"holds {len(groups)} trajectories, expected {expected['count']} (metadata.json)")
+        if not groups:
+            _fail(name, "holds no trajectories, expected at least one")
+        dim = expected.get("dim")
+        n_frames = expected.get("n_frames")
+        for index, group_name in enumerate(groups):
+            where = f"{name}: trajectory {group_name}"
+            if group_name != trajectory_name(index):
+                _fail(name, f"group {group_name!r} found where {trajectory_name(index)!r} was expected "
+                            f"(groups must be numbered 00000, 00001, ... without gaps)")
+            group = file[group_name]
+            if not isinstance(group, h5py.Group):
+                _fail(where, "is not an HDF5 group")
+            fields = {}
+            for field in ("position", "radius", "particle_type") + _INITIAL_FIELDS:
+                if field in group:
+                    fields[field] = np.asarray(group[field][()])
+                elif field in ("position", "radius", "particle_type"):
+                    _fail(where, f"missing field {field!r}")
+            if metadata is not None:
+                has_initial = all(f in fields for f in _INITIAL_FIELDS)
+                if metadata.has_initial_state and not has_initial:
+                    missing = next(f for f in _INITIAL_FIELDS if f not in fields)
+                    _fail(where, f"missing field {missing!r}, expected because metadata.json has "
+                                 f"has_initial_state = true")
+            attrs = {key: _json_value(value) for key, value in group.attrs.items()}
+            trajectory = Trajectory(attrs=attrs, **fields)
+            if dim is None:
+                dim = trajectory.dim if np.ndim(trajectory.position) == 3 else None
+            if n_frames is None and np.ndim(trajectory.position) == 3:
+                n_frames = trajectory.n_frames
+            validate_trajectory(trajectory, where, dim=dim, n_frames=n_frames,
+                                box_half_size=None if metadata is None else metadata.box_half_size)
+            if "particles" in expected and trajectory.n_particles != expected["particles"][index]:
+                _fail(where, f"'position' holds {trajectory.n_particles} particles, expected "
+                             f"{expected['particles'][index]} (metadata.json particle_counts)")
+            trajectories.append(trajectory)
+    return trajectories
+
+
+def load_dataset(directory: str | os.PathLike, splits: Sequence[str] | None = None
+                 ) -> tuple[DatasetMetadata, dict[str, list[Trajectory]]]:
+    """Read ``metadata.json`` and the requested split files, validating everything.
+
+    Args:
+      directory: the dataset directory.
+      splits: split names to read; ``None`` reads every split the metadata lists.
+
+    Returns:
+      ``(metadata, {split: [Trajectory, ...]})``.
+    """
+    directory = Path(directory)
+    metadata = read_metadata(directory)
+    if splits is None:
+        splits = metadata.splits
+    elif isinstance(splits, str):
+        splits = (splits,)
+    result = {}
+    for split in splits:
+        if split not in metadata.trajectory_counts:
+            raise DatasetError(f"{directory / METADATA_FILE}: no split {split!r}; the dataset has "
+                               f"{list(metadata.splits)}")
+        result[split] = read_split(directory / split_filename(split), metadata)
+    return metadata, result
+
+
+def radii_groups(groups: Iterable[tuple[int, Sequence[float]]]) -> list[dict[str, Any]]:
+    """Metadata entries ``{"count", "radii_m", "radii_mm"}`` for ``(count, radii in m)`` pairs."""
+    return [
+        {"count": int(count), "radii_m": [float(r) for r in radii],
+         "radii_mm": [round(float(r) * 1e3, 9) for r in radii]}
+        for count, radii in groups
+    ]

@@ -1,0 +1,535 @@
+"""Dataset presets and generation: sample initial states, simulate them in batches, write.
+
+A :class:`DatasetSpec` says what to generate: per split, groups of
+trajectories drawn from a radii list, the frame count and spacing, the
+physics and the precision. :func:`generate_dataset` turns a spec and a seed
+into a dataset directory (see :mod:`dispgns.data.format`):
+
+1. every trajectory gets its own key, ``fold_in(fold_in(PRNGKey(seed),
+   split_id), index)``, so changing one split never changes another;
+2. initial states follow the authors' protocol: exactly what
+   :func:`dispgns.physics.sample_initial_state` draws for that key, with one
+   compilation for the whole dataset (:func:`sample_initial_states`);
+3. trajectories are sorted by particle count, padded and simulated together
+   by :func:`dispgns.physics.simulate_batch`: one call, or a few when the
+   counts differ enough that padding everything to the largest would cost
+   more than another compilation (:func:`plan_batches`);
+4. the dataset is written into a temporary directory beside the target and
+   renamed into place, so a failure never leaves a partial dataset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Callable, Mapping, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dispgns.data.format import (
+    SPLITS,
+    DatasetMetadata,
+    Trajectory,
+    radii_groups,
+    split_filename,
+    staged_directory,
+    write_metadata,
+    write_split,
+)
+from dispgns.physics import (
+    InitialState,
+    PhysicsConfig,
+    PlacementError,
+    particle_count_range,
+    place_particles,
+    sample_initial_state,
+    simulate_batch,
+)
+
+SPLIT_IDS = {"train": 0, "valid": 1, "test": 2, "test_unseen": 3}
+KEY_DERIVATION = "fold_in(fold_in(jax.random.PRNGKey(seed), split_ids[split]), index)"
+
+# progress(stage, done, total): stage "place" counts trajectories whose
+# initial state is drawn, stage "simulate" counts frames (over every batch).
+ProgressFn = Callable[[str, int, int], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class RadiiGroup:
+    """``count`` trajectories whose radii are drawn uniformly from ``radii_m`` (m)."""
+
+    count: int
+    radii_m: tuple[float, ...]
+
+    def __post_init__(self):
+        object.__setattr__(self, "radii_m", tuple(float(r) for r in self.radii_m))
+        if not (isinstance(self.count, int) and self.count >= 0):
+            raise ValueError(f"a radii group's count must be an integer >= 0, got {self.count!r}")
+        if not self.radii_m or not all(math.isfinite(r) and r > 0 for r in self.radii_m):
+            raise ValueError(f"a radii group needs a non-empty list of radii > 0 m, got {list(self.radii_m)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetSpec:
+    """What to generate (everything but the seed and the output directory).
+
+    Attributes:
+      splits: per split name (``train``, ``valid``, ``test``,
+        ``test_unseen``), a tuple of :class:`RadiiGroup` (``(count, radii)``
+        pairs are accepted). Trajectories are indexed across the groups of a
+        split in order; splits whose total count is 0 are dropped.
+      n_frames: frames per trajectory T (frame 0 is the initial state).
+      save_every: Euler steps between frames (15 in the paper: 1.5 ms).
+      physics: the ground-truth model.
+      dim: spatial dimension D.
+      precision: ``"float32"`` (default, fast) or ``"float64"`` (needs
+        ``jax_enable_x64``).
+      name: the preset name, recorded in the metadata.
+    """
+
+    splits: Mapping[str, tuple[RadiiGroup, ...]]
+    n_frames: int = 500
+    save_every: int = 15
+    physics: PhysicsConfig = PhysicsConfig()
+    dim: int = 2
+    precision: str = "float32"
+    name: str | None = None
+
+    def __post_init__(self):
+        unknown = sorted(set(self.splits) - set(SPLITS))
+        if unknown:
+            raise ValueError(f"unknown split(s) {unknown}, expected some of {list(SPLITS)}")
+        splits = {}
+        for split in SPLITS:
+            groups = tuple(g if isinstance(g, RadiiGroup) else RadiiGroup(int(g[0]), tuple(g[1]))
+                           for g in self.splits.get(split, ()))
+            groups = tuple(g for g in groups if g.count > 0)
+            if groups:
+                splits[split] = groups
+        object.__setattr__(self, "splits", splits)
+        if not splits:
+            raise ValueError("a dataset spec needs at least one trajectory")
+        if not (isinstance(self.n_frames, int) and self.n_frames >= 1):
+            raise ValueError(f"n_frames must be an integer >= 1, got {self.n_frames!r}")
+        if not (isinstance(self.save_every, int) and self.save_every >= 1):
+            raise ValueError(f"save_every must be an integer >= 1, got {self.save_every!r}")
+        if self.dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {self.dim!r}")
+        if self.precision not in ("float32", "float64"):
+            raise ValueError(f"precision must be 'float32' or 'float64', got {self.precision!r}")
+        half = self.physics.box_half_size
+        for split, groups in splits.items():
+            for group in groups:
+                if max(group.radii_m) >= half / 2:
+                    raise ValueError(f"{split}: radius {max(group.radii_m)} m does not fit the box: expected "
+                                     f"radii below L/2 = {half / 2} m")
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Trajectories per split."""
+        return {split: sum(g.count for g in groups) for split, groups in self.splits.items()}
+
+    @property
+    def n_trajectories(self) -> int:
+        return sum(self.counts.values())
+
+    @property
+    def connectivity_radius(self) -> float:
+        """4 x the largest training radius / L (every radius if there is no train split)."""
+        groups = self.splits.get("train") or [g for gs in self.splits.values() for g in gs]
+        largest = max(max(g.radii_m) for g in groups)
+        return float(f"{4.0 * largest / self.physics.box_half_size:.12g}")
+
+    def items(self) -> list[tuple[str, int, tuple[float, ...]]]:
+        """``(split, index, radii_m)`` of every trajectory, in storage order."""
+        out = []
+        for split, groups in self.splits.items():
+            index = 0
+            for group in groups:
+                for _ in range(group.count):
+                    out.append((split, index, group.radii_m))
+                    index += 1
+        return out
+
+    def replace(self, *, n_frames: int | None = None, counts: Mapping[str, int] | None = None,
+                radii_m: Sequence[float] | None = None,
+                unseen_radii_m: Sequence[Sequence[float]] | None = None,
+                precision: str | None = None) -> "DatasetSpec":
+        """A modified copy.
+
+        Args:
+          n_frames: new frame count.
+          counts: new trajectory count per split; a split's count is spread
+            evenly over its radii groups (earlier groups get the remainder).
+            A split missing from the spec gets the training radii
+            (``test_unseen``: an error unless ``unseen_radii_m`` is given).
+          radii_m: new radii list (m) for ``train``, ``valid`` and ``test``.
+          unseen_radii_m: new radii lists (m) for ``test_unseen``, one group each.
+          precision: ``"float32"`` or ``"float64"``.
+        """
+        splits = {split: list(groups) for split, groups in self.splits.items()}
+        if radii_m is not None:
+            for split in ("train", "valid", "test"):
+                if split in splits:
+                    splits[split] = [RadiiGroup(sum(g.count for g in splits[split]), tuple(radii_m))]
+        if unseen_radii_m is not None:
+            total = sum(g.count for g in splits.get("test_unseen", []))
+            splits["test_unseen"] = [RadiiGroup(0, tuple(r)) for r in unseen_radii_m]
+            splits["test_unseen"] = _spread(splits["test_unseen"], total)
+        for split, count in (counts or {}).items():
+            if split not in SPLITS:
+                raise ValueError(f"unknown split {split!r}, expected one of {list(SPLITS)}")
+            groups = splits.get(split)
+            if not groups:
+                if split == "test_unseen":
+                    raise ValueError("test_unseen has no radii in this spec: give unseen radii as well")
+                source = splits.get("train") or next(iter(splits.values()))
+                groups = [RadiiGroup(0, source[0].radii_m)]
+            splits[split] = _spread(groups, count)
+        return dataclasses.replace(
+            self,
+            splits={s: tuple(g) for s, g in splits.items()},
+            n_frames=self.n_frames if n_frames is None else n_frames,
+            precision=self.precision if precision is None else precision,
+        )
+
+
+def _spread(groups: list[RadiiGroup], total: int) -> list[RadiiGroup]:
+    if not groups:
+        return groups
+    base, extra = divmod(int(total), len(groups))
+    return [RadiiGroup(base + (i < extra), g.radii_m) for i, g in enumerate(groups)]
+
+
+def _mm(*values: float) -> tuple[float, ...]:
+    return tuple(round(v * 1e-3, 12) for v in values)
+
+
+PAPER_TRAIN_RADII_M = _mm(2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0)
+
+
+def paper_spec() -> DatasetSpec:
+    """The paper's protocol: 16 train, 6 valid, 6 test, 12 unseen-radii test; 500 frames, 1.5 ms apart."""
+    return DatasetSpec(
+        splits={
+            "train": (RadiiGroup(16, PAPER_TRAIN_RADII_M),),
+            "valid": (RadiiGroup(6, PAPER_TRAIN_RADII_M),),
+            "test": (RadiiGroup(6, PAPER_TRAIN_RADII_M),),
+            "test_unseen": (RadiiGroup(6, _mm(2.75, 4.25)), RadiiGroup(6, _mm(2.25, 3.25, 3.75, 4.75))),
+        },
+        n_frames=500,
+        save_every=15,
+        name="paper",
+    )
+
+
+def tiny_spec() -> DatasetSpec:
+    """Five trajectories of 35-55 large disks and 60 frames, for tests and demos.
+
+    Train radii {4, 6, 8, 10} mm, unseen {4.5, 5.5, 7, 9} mm. The spread matters: the
+    protocol sizes N by the largest radius, and narrow lists of large radii
+    (e.g. {7, 8, 9, 10} mm) are often too dense to place without overlap.
+    """
+    radii = _mm(4.0, 6.0, 8.0, 10.0)
+    return DatasetSpec(
+        splits={
+            "train": (RadiiGroup(2, radii),),
+            "valid": (RadiiGroup(1, radii),),
+            "test": (RadiiGroup(1, radii),),
+            "test_unseen": (RadiiGroup(1, _mm(4.5, 5.5, 7.0, 9.0)),),
+        },
+        n_frames=60,
+        save_every=15,
+        name="tiny",
+    )
+
+
+PRESETS: dict[str, Callable[[], DatasetSpec]] = {"paper": paper_spec, "tiny": tiny_spec}
+
+
+def preset(name: str) -> DatasetSpec:
+    """The named preset spec (``"paper"`` or ``"tiny"``)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}, expected one of {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+# ----------------------------------------------------------------------------- initial states
+
+
+def trajectory_key(seed: int, split: str, index: int) -> jax.Array:
+    """The PRNG key of trajectory ``index`` of ``split`` (independent of every other trajectory)."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), SPLIT_IDS[split]), index)
+
+
+class _Draw(NamedTuple):
+    keys: tuple
+    start_height: float
+    n_particles: int
+
+
+def sample_initial_states(keys: Sequence[jax.Array], radii_lists: Sequence[Sequence[float]],
+                          config: PhysicsConfig = PhysicsConfig(), *, dim: int = 2, dtype=jnp.float32,
+                          progress: Callable[[int], None] | None = None,
+                          labels: Sequence[str] | None = None) -> list[InitialState]:
+    """Many :func:`~dispgns.physics.sample_initial_state` draws, with one compilation.
+
+    ``sample_initial_state`` jit-compiles its placement loop for every
+    distinct particle count (about 0.7 s each: 30 s for the 40 paper
+    trajectories). Placement is sequential in index order, so placing extra
+    trailing particles never moves the first ``N``; here every trajectory is
+    placed with the same padded count and cut back to its own ``N``. The
+    result equals ``sample_initial_state(keys[i], radii_lists[i], config,
+    dim=dim, dtype=dtype)`` exactly (tested). That equality relies on
+    prefix-stable random draws (``jax_threefry_partitionable``, the JAX
+    default); without it this falls back to one ``sample_initial_state``
+    call per trajectory.
+
+    Args:
+      keys: one PRNG key per trajectory.
+      radii_lists: per trajectory, the radii (m) to draw from.
+      config, dim, dtype: as for ``sample_initial_state``.
+      progress: called with the number of states placed so far.
+      labels: per trajectory, a name used in error messages.
+
+    Returns:
+      One :class:`~dispgns.physics.InitialState` per key, holding numpy
+      arrays: position ``(N, D)`` m, velocity ``(N, D)`` m/s, radius ``(N,)`` m.
+
+    Raises:
+      PlacementError: some trajectory's packing is too dense.
+    """
+    labels = labels or [f"trajectory {i}" for i in range(len(keys))]
+    if not jax.config.jax_threefry_partitionable:
+        states = []
+        for i, (key, radii) in enumerate(zip(keys, radii_lists)):
+            try:
+                states.append(sample_initial_state(key, radii, config, dim=dim, dtype=dtype))
+            except PlacementError as error:
+                raise PlacementError(f"{labels[i]}: {error}") from None
+            if progress is not None:
+                progress(i + 1)
+        return states
+
+    half = config.box_half_size
+    draws = []
+    for key, radii, label in zip(keys, radii_lists, labels):
+        # Steps 1-2 of sample_initial_state, with the same key split and dtypes.
+        subkeys = jax.random.split(key, 5)
+        start_height = float(jax.random.uniform(subkeys[0], (), minval=-0.25 * half, maxval=0.0))
+        low, high = particle_count_range(start_height, max(radii), config, dim)
+        n_particles = int(jax.random.randint(subkeys[1], (), low, high + 1))
+        if start_height + 2 * max(radii) > half:
+            raise PlacementError(f"{label}: start height {start_height} m leaves no room for radius "
+                                 f"{max(radii)} m")
+        draws.append(_Draw(subkeys, start_height, n_particles))
+    n_pad = max(d.n_particles for d in draws)
+    states = []
+    for i, (draw, radii, label) in enumerate(zip(draws, radii_lists, labels)):
+        n = draw.n_particles
+        choices = np.asarray(radii, dtype=float)
+        # numpy for every count-dependent shape: eager jnp ops compile once per shape.
+        choice = np.asarray(jax.random.randint(draw.keys[2], (n_pad,), 0, choices.size))[:n]
+        radius = choices.astype(dtype)[choice]
+        # Tiny trailing particles: placed after the real ones, they never move them.
+        padded = np.full((n_pad,), 1e-3 * choices.min(), dtype)
+        padded[:n] = radius
+        position, placed = place_particles(draw.keys[3], jnp.asarray(padded), draw.start_height, config, dim=dim)
+        placed = np.asarray(placed)[:n]
+        if not placed.all():
+            first = int(np.argmin(placed))
+            raise PlacementError(
+                f"{label}: could not place particle {first} of {n} (radius {radius[first]:.4g} m) without "
+                f"overlap; the packing is too dense for the radii {list(radii)} m above y0 = "
+                f"{draw.start_height:.4g} m. Use fewer particles or a wider spread of radii.")
+        # Step 5, as in sample_initial_state.
+        vs = config.settling_speed(float(choices.min()))
+        velocity = jax.random.uniform(draw.keys[4], (dim,), dtype, -vs, vs)
+        velocity = np.asarray(velocity.at[-1].multiply(0.25))
+        velocity = np.broadcast_to(velocity, (n, dim)).copy()
+        states.append(InitialState(np.asarray(position)[:n], velocity, radius, draw.start_height))
+        if progress is not None:
+            progress(i + 1)
+    return states
+
+
+# ----------------------------------------------------------------------------- batching
+
+# Rough CPU costs used only to decide how to group trajectories (results never
+# depend on them beyond float summation order): the all-pairs step costs
+# about 1.7e-9 s per particle pair, a simulate_batch compilation about 2.5 s.
+_SECONDS_PER_PAIR_STEP = 1.7e-9
+_SECONDS_PER_COMPILE = 2.5
+
+
+def plan_batches(particle_counts: Sequence[int], n_steps: int, *, batch_size: int | None = None) -> list[list[int]]:
+    """Group trajectories for :func:`~dispgns.physics.simulate_batch` calls.
+
+    Trajectories are sorted by particle count and cut into contiguous groups,
+    each padded to its largest count. The all-pairs force costs ``B N^2``
+    per step, so one straggler with many particles makes a single batch
+    expensive; every extra group costs one more compilation. The cut
+    minimises the estimated wall time (dynamic programming over the sorted
+    counts). With ``batch_size``, groups of at most that many trajectories.
+
+    Args:
+      particle_counts: N of every trajectory.
+      n_steps: Euler steps per trajectory.
+      batch_size: maximum trajectories per group (``None``: no limit).
+
+    Returns:
+      Groups of trajectory indices, in increasing particle count.
+    """
+    order = sorted(range(len(particle_counts)), key=lambda i: (particle_counts[i], i))
+    counts = [particle_counts[i] for i in order]
+    size = len(counts) if batch_size is None else batch_size
+    # best[j]: cheapest cost of the first j sorted trajectories; cut[j]: start of the last group.
+    best = [0.0] + [math.inf] * len(counts)
+    cut = [0] * (len(counts) + 1)
+    for end in range(1, len(counts) + 1):
+        for start in range(max(0, end - size), end):
+            cost = (best[start] + _SECONDS_PER_COMPILE
+                    + _SECONDS_PER_PAIR_STEP * n_steps * (end - start) * counts[end - 1] ** 2)
+            if cost < best[end]:
+                best[end], cut[end] = cost, start
+    groups, end = [], len(counts)
+    while end > 0:
+        groups.append(order[cut[end]:end])
+        end = cut[end]
+    return groups[::-1]
+
+
+# ----------------------------------------------------------------------------- generation
+
+
+def generate_dataset(
+    spec: DatasetSpec,
+    out_dir: str | os.PathLike,
+    seed: int,
+    *,
+    overwrite: bool = False,
+    batch_size: int | None = None,
+    progress: ProgressFn | None = None,
+) -> DatasetMetadata:
+    """Generate the dataset ``spec`` describes into ``out_dir``; deterministic for a seed.
+
+    Args:
+      spec: what to generate.
+      out_dir: the dataset directory to create. It must not exist or be
+        empty, unless ``overwrite`` (then it must hold a dispgns dataset,
+        which is replaced only once the new one is complete).
+      seed: integer in ``[0, 2^32)``.
+      overwrite: replace an existing dataset.
+      batch_size: at most this many trajectories per ``simulate_batch``
+        call (``None``: no limit, the fastest; smaller only to save memory).
+        The grouping is chosen by :func:`plan_batches`.
+      progress: optional ``progress(stage, done, total)`` callback.
+
+    Returns:
+      The metadata written beside the split files.
+
+    Raises:
+      FileExistsError: ``out_dir`` holds something and ``overwrite`` is off.
+      PlacementError: a requested packing cannot be placed without overlap.
+      ValueError: bad seed, or float64 without ``jax_enable_x64``.
+      OSError: ``out_dir`` cannot be written.
+    """
+    if not (isinstance(seed, (int, np.integer)) and 0 <= int(seed) < 2**32):
+        raise ValueError(f"seed must be an integer in [0, 2^32), got {seed!r}")
+    seed = int(seed)
+    if spec.precision == "float64" and not jax.config.jax_enable_x64:
+        raise ValueError("precision 'float64' needs jax_enable_x64: enable it before creating any array "
+                         "(jax.config.update('jax_enable_x64', True), or `with jax.enable_x64(True):`)")
+    dtype = np.float64 if spec.precision == "float64" else np.float32
+    if batch_size is not None and batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1 or None, got {batch_size!r}")
+    config = spec.physics
+    half = config.box_half_size
+    items = spec.items()
+    total = len(items)
+    report = progress or (lambda stage, done, total: None)
+
+    # Entered first so that an unwritable or occupied target fails before the long run.
+    with staged_directory(out_dir, overwrite=overwrite) as staging:
+        labels = [f"{split} trajectory {index:05d}" for split, index, _ in items]
+        keys = [trajectory_key(seed, split, index) for split, index, _ in items]
+        states = sample_initial_states(keys, [radii for _, _, radii in items], config, dim=spec.dim,
+                                       dtype=dtype, labels=labels,
+                                       progress=lambda done: report("place", done, total))
+        counts = [int(s.position.shape[0]) for s in states]
+        positions = [None] * total
+        groups = plan_batches(counts, spec.n_frames * spec.save_every, batch_size=batch_size)
+        # The simulate stage counts frames over every batch.
+        frames_total = spec.n_frames * len(groups)
+        report("simulate", 0, frames_total)
+        for batch_index, members in enumerate(groups):
+            n_pad = max(counts[i] for i in members)
+            x0 = np.zeros((len(members), n_pad, spec.dim), dtype)
+            v0 = np.zeros_like(x0)
+            radius = np.ones((len(members), n_pad), dtype)
+            mask = np.zeros((len(members), n_pad), bool)
+            for row, i in enumerate(members):
+                n = counts[i]
+                x0[row, :n] = np.asarray(states[i].position)
+                v0[row, :n] = np.asarray(states[i].velocity)
+                radius[row, :n] = np.asarray(states[i].radius)
+                mask[row, :n] = True
+            offset = batch_index * spec.n_frames
+            report("simulate", offset + 1, frames_total)
+
+            def on_frames(done, offset=offset):
+                report("simulate", offset + 1 + done, frames_total)
+
+            xs = simulate_batch(x0, v0, radius, mask, config, n_frames=spec.n_frames,
+                                save_every=spec.save_every, progress=on_frames)
+            xs = np.asarray(xs)
+            for row, i in enumerate(members):
+                positions[i] = xs[row, :, : counts[i]]
+            del xs
+
+        trajectories: dict[str, list[Trajectory]] = {split: [] for split in spec.splits}
+        for i, (split, index, radii) in enumerate(items):
+            state = states[i]
+            # The exact SI state the physics started from (float32 -> float64 is exact).
+            x0 = np.asarray(state.position).astype(np.float64)
+            v0 = np.asarray(state.velocity).astype(np.float64)
+            # Radii as listed (0.004, not float32(0.004)): they round to what ran in either precision.
+            listed = np.asarray(radii, np.float64)
+            ran = np.asarray(state.radius).astype(np.float64)
+            a0 = listed[np.argmin(np.abs(ran[:, None] - listed[None, :]), axis=1)]
+            trajectories[split].append(Trajectory(
+                position=(positions[i].astype(np.float64) / half).astype(np.float32),
+                radius=(a0 / half).astype(np.float32),
+                initial_position=x0,
+                initial_velocity=v0,
+                initial_radius=a0,
+                particle_type=np.zeros((counts[i],), np.int32),
+                attrs={"seed": seed, "split": split, "index": index, "radii_m": list(radii),
+                       "start_height_m": float(state.start_height), "n_particles": counts[i]},
+            ))
+        for split, group in trajectories.items():
+            write_split(staging / split_filename(split), group, box_half_size=half)
+        metadata = DatasetMetadata(
+            dim=spec.dim,
+            sequence_length=spec.n_frames,
+            frame_dt=spec.save_every * config.dt,
+            save_every=spec.save_every,
+            box_half_size=half,
+            connectivity_radius=spec.connectivity_radius,
+            trajectory_counts=spec.counts,
+            radii={split: radii_groups((g.count, g.radii_m) for g in groups) for split, groups in spec.splits.items()},
+            physics=config.to_dict(),
+            has_initial_state=True,
+            seed=seed,
+            key_derivation=KEY_DERIVATION,
+            split_ids={split: SPLIT_IDS[split] for split in spec.splits},
+            precision=spec.precision,
+            source="generated",
+            preset=spec.name,
+            particle_counts={split: [t.n_particles for t in group] for split, group in trajectories.items()},
+        )
+        write_metadata(staging, metadata)
+    return metadata

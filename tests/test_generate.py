@@ -1,0 +1,344 @@
+"""Dataset generation and ``dispgns generate``: determinism, re-runnability, atomicity."""
+
+import math
+
+import h5py
+import jax
+import numpy as np
+import pytest
+
+from dispgns.cli import main
+from dispgns.data import generate as gen
+from dispgns.data.format import DatasetError, load_dataset
+from dispgns.data.generate import (
+    DatasetSpec,
+    RadiiGroup,
+    generate_dataset,
+    paper_spec,
+    sample_initial_states,
+    tiny_spec,
+    trajectory_key,
+)
+from dispgns.physics import PhysicsConfig, PlacementError, sample_initial_state, simulate
+
+# Every real generation here uses the tiny preset at this length, so the
+# compiled simulation is shared between tests.
+FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny") / "dataset"
+    metadata = generate_dataset(tiny_spec().replace(n_frames=FRAMES), out, seed=0)
+    return out, metadata
+
+
+def fake_simulate_batch(calls=None):
+    """A stand-in for simulate_batch: frame k is x0 + k * 1e-6 m along x (no compilation)."""
+
+    def fake(x0, v0, radius, mask, config, *, n_frames, save_every, progress=None):
+        if calls is not None:
+            calls.append(x0.shape)
+        steps = np.arange(n_frames)[None, :, None, None] * np.array([1e-6, 0.0])
+        if progress is not None:
+            progress(n_frames - 1)
+        return np.asarray(x0)[:, None] + steps.astype(x0.dtype)
+
+    return fake
+
+
+def listing(directory):
+    return sorted(p.name for p in directory.iterdir())
+
+
+# ----------------------------------------------------------------------------- specs
+
+
+def test_paper_preset():
+    spec = paper_spec()
+    assert spec.counts == {"train": 16, "valid": 6, "test": 6, "test_unseen": 12}
+    assert spec.n_trajectories == 40 and spec.n_frames == 500 and spec.save_every == 15
+    assert spec.splits["train"][0].radii_m == (0.002, 0.0025, 0.003, 0.0035, 0.004, 0.0045, 0.005)
+    assert spec.splits["valid"] == spec.splits["test"] == (RadiiGroup(6, spec.splits["train"][0].radii_m),)
+    unseen = spec.splits["test_unseen"]
+    assert [g.count for g in unseen] == [6, 6]
+    assert unseen[0].radii_m == (0.00275, 0.00425)
+    assert unseen[1].radii_m == (0.00225, 0.00325, 0.00375, 0.00475)
+    assert spec.connectivity_radius == 0.2
+    assert spec.physics == PhysicsConfig()
+    assert spec.save_every * spec.physics.dt == pytest.approx(1.5e-3)
+
+
+def test_spec_replace():
+    spec = paper_spec().replace(counts={"train": 3, "test_unseen": 5, "valid": 0}, n_frames=20)
+    assert spec.counts == {"train": 3, "test": 6, "test_unseen": 5}
+    assert [g.count for g in spec.splits["test_unseen"]] == [3, 2]
+    spec = spec.replace(radii_m=[0.004, 0.006], unseen_radii_m=[[0.005]])
+    assert spec.splits["train"] == (RadiiGroup(3, (0.004, 0.006)),)
+    assert spec.splits["test"] == (RadiiGroup(6, (0.004, 0.006)),)
+    assert spec.splits["test_unseen"] == (RadiiGroup(5, (0.005,)),)
+    assert spec.connectivity_radius == 0.24
+    with pytest.raises(ValueError, match="radii below L/2"):
+        spec.replace(radii_m=[0.06])
+    with pytest.raises(ValueError, match="at least one trajectory"):
+        DatasetSpec(splits={"train": [(0, [0.004])]})
+    with pytest.raises(ValueError, match="unknown split"):
+        DatasetSpec(splits={"training": [(1, [0.004])]})
+
+
+def test_trajectory_keys_are_independent():
+    keys = {(seed, split, index): tuple(np.asarray(jax.random.key_data(trajectory_key(seed, split, index))))
+            for seed in (0, 1) for split in ("train", "valid", "test", "test_unseen") for index in range(3)}
+    assert len(set(keys.values())) == len(keys)
+    # A split's trajectories do not depend on the counts of the others.
+    small = tiny_spec().replace(counts={"train": 0, "valid": 0, "test_unseen": 0, "test": 1}).items()
+    assert small == [("test", 0, tiny_spec().splits["test"][0].radii_m)]
+
+
+def test_sample_initial_states_equals_sample_initial_state():
+    spec = tiny_spec()
+    items = spec.items()[:1] + spec.items()[-1:]
+    keys = [trajectory_key(5, split, index) for split, index, _ in items]
+    states = sample_initial_states(keys, [radii for _, _, radii in items], spec.physics)
+    assert len({s.position.shape[0] for s in states}) > 1  # padding is exercised
+    for key, (_, _, radii), state in zip(keys, items, states):
+        expected = sample_initial_state(key, radii, spec.physics)
+        np.testing.assert_array_equal(state.position, expected.position)
+        np.testing.assert_array_equal(state.velocity, expected.velocity)
+        np.testing.assert_array_equal(state.radius, expected.radius)
+        assert state.start_height == expected.start_height
+        assert state.position.dtype == np.float32
+
+
+# ----------------------------------------------------------------------------- generated data
+
+
+def test_generated_dataset_and_metadata(tiny):
+    out, metadata = tiny
+    assert listing(out) == ["metadata.json", "test.h5", "test_unseen.h5", "train.h5", "valid.h5"]
+    read, splits = load_dataset(out)
+    assert read == metadata
+    assert read.trajectory_counts == {"train": 2, "valid": 1, "test": 1, "test_unseen": 1}
+    assert read.sequence_length == FRAMES and read.save_every == 15 and read.dim == 2
+    assert read.frame_dt == pytest.approx(1.5e-3)
+    assert read.connectivity_radius == pytest.approx(4 * 0.010 / 0.1)
+    assert read.physics_config == PhysicsConfig()
+    assert read.has_initial_state and read.seed == 0 and read.preset == "tiny" and read.precision == "float32"
+    assert read.radii["test_unseen"] == [{"count": 1, "radii_m": [0.0045, 0.0055, 0.007, 0.009],
+                                           "radii_mm": [4.5, 5.5, 7.0, 9.0]}]
+    for split, trajectories in splits.items():
+        assert [t.n_particles for t in trajectories] == read.particle_counts[split]
+        allowed = read.radii[split][0]["radii_m"]
+        for index, t in enumerate(trajectories):
+            assert 30 <= t.n_particles <= 60
+            assert t.position.dtype == np.float32 and t.position.shape == (FRAMES, t.n_particles, 2)
+            assert t.initial_position.dtype == np.float64
+            assert set(t.initial_radius.tolist()) <= set(allowed)
+            np.testing.assert_array_equal(t.radius, (t.initial_radius / 0.1).astype(np.float32))
+            np.testing.assert_allclose(t.position[0], t.initial_position / 0.1, atol=1e-7)
+            assert t.attrs["split"] == split and t.attrs["index"] == index and t.attrs["seed"] == 0
+            # Every disk stays inside the box.
+            assert np.all(np.abs(t.position) <= 1 - t.radius[None, :, None] + 1e-4)
+
+
+def test_positions_match_a_rerun_from_the_stored_initial_state(tiny):
+    out, metadata = tiny
+    _, splits = load_dataset(out, splits=["train", "test_unseen"])
+    for trajectory in (splits["train"][0], splits["test_unseen"][0]):
+        frames = simulate(trajectory.initial_position.astype(np.float32),
+                          trajectory.initial_velocity.astype(np.float32),
+                          trajectory.initial_radius.astype(np.float32), metadata.physics_config,
+                          n_frames=metadata.sequence_length, save_every=metadata.save_every)
+        np.testing.assert_allclose(np.asarray(frames) / metadata.box_half_size, trajectory.position, atol=1e-5)
+
+
+def _read_all(directory):
+    metadata, splits = load_dataset(directory)
+    return metadata, {s: [(t.position, t.initial_position, t.initial_velocity, t.radius) for t in ts]
+                      for s, ts in splits.items()}
+
+
+def test_same_seed_same_dataset_and_different_seed_differs(tiny, tmp_path):
+    out, _ = tiny
+    again = generate_dataset(tiny_spec().replace(n_frames=FRAMES), tmp_path / "again", seed=0)
+    first_meta, first = _read_all(out)
+    second_meta, second = _read_all(tmp_path / "again")
+    assert first_meta == second_meta == again
+    for split in first:
+        for a, b in zip(first[split], second[split]):
+            for x, y in zip(a, b):
+                np.testing.assert_array_equal(x, y)
+    other = generate_dataset(tiny_spec().replace(n_frames=FRAMES), tmp_path / "other", seed=1)
+    assert other.seed == 1
+    _, third = _read_all(tmp_path / "other")
+    for split in first:
+        for a, b in zip(first[split], third[split]):
+            assert a[1].shape != b[1].shape or not np.array_equal(a[1], b[1])
+
+
+# ----------------------------------------------------------------------------- failures and atomicity
+
+
+def test_failure_while_writing_leaves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch())
+
+    def failing(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(gen, "write_metadata", failing)
+    with pytest.raises(OSError, match="disk full"):
+        generate_dataset(tiny_spec(), tmp_path / "parent" / "out", seed=0)
+    assert listing(tmp_path) == []
+
+
+def test_overwrite_rules(tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch())
+    out = tmp_path / "out"
+    out.mkdir()
+    first = generate_dataset(tiny_spec(), out, seed=0)  # an empty directory is fine
+    before = (out / "train.h5").read_bytes()
+    with pytest.raises(FileExistsError, match="exists and is not empty"):
+        generate_dataset(tiny_spec(), out, seed=1)
+    assert (out / "train.h5").read_bytes() == before
+    second = generate_dataset(tiny_spec(), out, seed=1, overwrite=True)
+    assert (first.seed, second.seed) == (0, 1)
+    assert load_dataset(out)[0].seed == 1
+    assert listing(tmp_path) == ["out"]
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "keep.txt").write_text("keep")
+    with pytest.raises(FileExistsError, match="not a dispgns dataset"):
+        generate_dataset(tiny_spec(), notes, seed=0, overwrite=True)
+    assert listing(notes) == ["keep.txt"]
+
+
+def test_batches_keep_trajectories_in_order(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch(calls))
+    progress = []
+    metadata = generate_dataset(tiny_spec(), tmp_path / "out", seed=0, batch_size=2,
+                                progress=lambda *event: progress.append(event))
+    assert sorted(shape[0] for shape in calls) == [1, 2, 2]
+    assert progress[0] == ("place", 1, 5) and ("place", 5, 5) in progress
+    assert progress[-1] == ("simulate", 3 * 60, 3 * 60)
+    _, splits = load_dataset(tmp_path / "out")
+    for trajectories in splits.values():
+        for t in trajectories:
+            np.testing.assert_allclose(t.position[5], t.initial_position / 0.1 + [5e-5, 0], atol=1e-6)
+    assert metadata.particle_counts["train"] == [t.n_particles for t in splits["train"]]
+
+
+def test_plan_batches():
+    # The paper's counts: a few unseen-radii trajectories hold many more disks.
+    counts = [150 + i for i in range(32)] + [187, 194, 197, 212, 228, 232, 240, 240]
+    shuffled = counts[::-1]
+    groups = gen.plan_batches(shuffled, 7500)
+    assert sorted(i for g in groups for i in g) == list(range(40))
+    assert [max(shuffled[i] for i in g) for g in groups] == [181, 240]
+    assert gen.plan_batches([44, 46, 38, 40, 40], 900) == [[2, 3, 4, 0, 1]]
+    limited = gen.plan_batches(shuffled, 7500, batch_size=16)
+    assert max(len(g) for g in limited) <= 16 and sorted(i for g in limited for i in g) == list(range(40))
+
+
+def test_impossible_packing_raises_and_leaves_nothing(tmp_path):
+    # 20 mm disks only: the protocol asks for more than the region can hold.
+    spec = DatasetSpec(splits={"train": [(1, [0.02])]}, n_frames=4)
+    with pytest.raises(PlacementError, match="train trajectory 00000: could not place particle"):
+        generate_dataset(spec, tmp_path / "out", seed=0)
+    assert listing(tmp_path) == []
+
+
+def test_float64_needs_x64(tmp_path):
+    spec = tiny_spec().replace(precision="float64")
+    with pytest.raises(ValueError, match="jax_enable_x64"):
+        generate_dataset(spec, tmp_path / "out", seed=0)
+    assert listing(tmp_path) == []
+    with pytest.raises(ValueError, match="seed"):
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=-1)
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def test_cli_generate(tiny, tmp_path, capsys):
+    out = tmp_path / "cli"
+    assert main(["generate", "--preset", "tiny", "--out", str(out), "--seed", "0", "--frames", str(FRAMES)]) == 0
+    printed = capsys.readouterr().out
+    assert f"wrote {out}" in printed
+    assert "5 trajectories (train 2, valid 1, test 1, test_unseen 1), 12 frames each" in printed
+    _, ours = _read_all(out)
+    _, reference = _read_all(tiny[0])
+    for split in reference:
+        for a, b in zip(reference[split], ours[split]):
+            np.testing.assert_array_equal(a[0], b[0])
+
+
+def test_cli_generate_options(tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch())
+    out = tmp_path / "custom"
+    code = main(["generate", "--preset", "paper", "--out", str(out), "--frames", "9", "--train-count", "2",
+                 "--valid-count", "0", "--test-count", "1", "--unseen-count", "3", "--radii", "4,6,8,10",
+                 "--unseen-radii", "3,5", "--unseen-radii", "4,6,9"])
+    assert code == 0
+    metadata, splits = load_dataset(out)
+    assert metadata.trajectory_counts == {"train": 2, "test": 1, "test_unseen": 3}
+    assert metadata.sequence_length == 9 and metadata.preset == "paper"
+    assert [g["radii_mm"] for g in metadata.radii["test_unseen"]] == [[3.0, 5.0], [4.0, 6.0, 9.0]]
+    assert [g["count"] for g in metadata.radii["test_unseen"]] == [2, 1]
+    assert metadata.radii["train"][0]["radii_mm"] == [4.0, 6.0, 8.0, 10.0]
+    assert set(np.round(splits["test_unseen"][0].initial_radius * 1e3, 6)) <= {3.0, 5.0}
+    assert set(np.round(splits["test_unseen"][2].initial_radius * 1e3, 6)) <= {4.0, 6.0, 9.0}
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--radii", "20"], "could not place particle"),
+        (["--radii", "4,x"], "expected comma-separated radii in mm"),
+        (["--radii", "0"], "expected radii > 0 mm"),
+        (["--train-count", "-1"], "expected a count >= 0"),
+        (["--frames", "1"], "expected at least 2 frames"),
+    ],
+)
+def test_cli_generate_user_errors(tmp_path, capsys, extra, message):
+    out = tmp_path / "out"
+    code = main(["generate", "--preset", "tiny", "--out", str(out), "--frames", "4"] + extra)
+    assert code == 2
+    error = capsys.readouterr().err
+    assert error.startswith("dispgns generate: error:") and message in error
+    assert listing(tmp_path) == []
+
+
+def test_cli_generate_refuses_occupied_or_unwritable_targets(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch())
+    occupied = tmp_path / "occupied"
+    occupied.mkdir()
+    (occupied / "metadata.json").write_text("{}")
+    assert main(["generate", "--preset", "tiny", "--out", str(occupied)]) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+    assert (occupied / "metadata.json").read_text() == "{}"
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["generate", "--preset", "tiny", "--out", str(blocker / "out")]) != 0
+    assert "cannot write the dataset" in capsys.readouterr().err
+    assert listing(tmp_path) == ["file", "occupied"]
+
+
+def test_cli_generate_x64_is_scoped(tmp_path):
+    out = tmp_path / "f64"
+    code = main(["generate", "--preset", "tiny", "--out", str(out), "--x64", "--frames", "3", "--train-count", "1",
+                 "--valid-count", "0", "--test-count", "0", "--unseen-count", "0"])
+    assert code == 0
+    assert not jax.config.jax_enable_x64
+    metadata, splits = load_dataset(out)
+    assert metadata.precision == "float64"
+    (trajectory,) = splits["train"]
+    # A float64 initial state is not float32-representable.
+    assert not np.array_equal(trajectory.initial_position, trajectory.initial_position.astype(np.float32))
+    with h5py.File(out / "train.h5") as file:
+        assert file["00000/position"].dtype == np.float32
+    assert math.isclose(metadata.frame_dt, 1.5e-3)
+
+
+def test_dataset_error_is_a_value_error():
+    assert issubclass(DatasetError, ValueError)
