@@ -152,6 +152,18 @@ def test_positions_match_a_rerun_from_the_stored_initial_state(tiny):
         np.testing.assert_allclose(np.asarray(frames) / metadata.box_half_size, trajectory.position, atol=1e-5)
 
 
+def test_concurrent_batches_match_one_batch(tiny, tmp_path):
+    out, _ = tiny
+    generate_dataset(tiny_spec().replace(n_frames=FRAMES), tmp_path / "batched", seed=0, batch_size=3)
+    _, one = load_dataset(out)
+    _, batched = load_dataset(tmp_path / "batched")
+    for split in one:
+        for a, b in zip(one[split], batched[split]):
+            np.testing.assert_array_equal(a.initial_position, b.initial_position)
+            # Padding to another count may change float summation order only.
+            np.testing.assert_allclose(a.position, b.position, atol=1e-5)
+
+
 def _read_all(directory):
     metadata, splits = load_dataset(directory)
     return metadata, {s: [(t.position, t.initial_position, t.initial_velocity, t.radius) for t in ts]
@@ -234,10 +246,38 @@ def test_plan_batches():
     shuffled = counts[::-1]
     groups = gen.plan_batches(shuffled, 7500)
     assert sorted(i for g in groups for i in g) == list(range(40))
-    assert [max(shuffled[i] for i in g) for g in groups] == [181, 240]
+    assert 2 <= len(groups) <= 4
+    for group in groups:  # contiguous in sorted order
+        assert [shuffled[i] for i in group] == sorted(shuffled[i] for i in group)
+    one_lane = gen.plan_batches(shuffled, 7500, lanes=1)
+    assert [max(shuffled[i] for i in g) for g in one_lane] == [181, 240]
+
+    def wall(plan, lanes):
+        costs = [gen._SECONDS_PER_COMPILE
+                 + gen._SECONDS_PER_PAIR_STEP * 7500 * len(g) * max(shuffled[i] for i in g) ** 2 for g in plan]
+        return gen._makespan(costs, lanes)
+
+    assert wall(groups, 2) < wall(one_lane, 2) < wall([list(range(40))], 2)
+    # Small counts: one group, one compilation.
     assert gen.plan_batches([44, 46, 38, 40, 40], 900) == [[2, 3, 4, 0, 1]]
-    limited = gen.plan_batches(shuffled, 7500, batch_size=16)
-    assert max(len(g) for g in limited) <= 16 and sorted(i for g in limited for i in g) == list(range(40))
+    limited = gen.plan_batches(shuffled, 7500, batch_size=7)
+    assert max(len(g) for g in limited) <= 7 and sorted(i for g in limited for i in g) == list(range(40))
+
+
+def test_a_failing_batch_stops_the_others(tmp_path, monkeypatch):
+    fake = fake_simulate_batch()
+    started = []
+
+    def failing(x0, *args, **kwargs):
+        started.append(x0.shape[0])
+        if len(started) == 1:
+            raise RuntimeError("out of memory")
+        return fake(x0, *args, **kwargs)
+
+    monkeypatch.setattr(gen, "simulate_batch", failing)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=0, batch_size=2)
+    assert listing(tmp_path) == []
 
 
 def test_impossible_packing_raises_and_leaves_nothing(tmp_path):
