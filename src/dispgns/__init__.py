@@ -31,3 +31,23 @@ __all__ = [
     "load_dataset",
     "generate_dataset",
 ]
+
+# Learned simulator core: graph network, one-step prediction, rollout, training step.
+from dispgns.graph import GraphCapacity
+from dispgns.model import ModelConfig, init_params
+from dispgns.simulator import predict_acceleration, predict_position, rollout
+from dispgns.training import (
+    TrainConfig,
+    TrainState,
+    compute_normalization,
+    create_train_state,
+    make_optimizer,
+    train_step,
+)
+from dispgns.data.examples import Batch, BatchStream
+
+__all__ += [
+    "GraphCapacity", "ModelConfig", "init_params", "predict_acceleration", "predict_position", "rollout",
+    "TrainConfig", "TrainState", "compute_normalization", "create_train_state", "make_optimizer", "train_step",
+    "Batch", "BatchStream",
+]

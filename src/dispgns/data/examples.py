@@ -1,0 +1,256 @@
+"""Training examples: windows of trajectories, shuffled deterministically, padded to a few budgets.
+
+An example is a window of ``C + 1 + k`` consecutive frames of one trajectory
+(``C`` input frames, then the target frame; ``k`` extra frames when training
+with ``k`` pushforward steps). A batch stacks ``B`` examples, padded to a
+node budget (particle slots) and carrying a static graph capacity (ordered
+pairs per example): the jitted training step compiles once per distinct
+``(node budget, capacity)`` and this module keeps those few.
+
+Order and resume: batch ``i`` is a pure function of ``(seed, i)``: epoch ``e
+= i // batches_per_epoch`` uses the permutation ``default_rng([seed,
+e]).permutation(num_examples)`` and batch ``i`` takes the next ``B`` examples
+of it (the ``num_examples % B`` left over in an epoch are skipped in that
+epoch only). A run resumes exactly from the number of batches it has
+consumed, which is the training step when every step consumes one batch.
+
+Units: positions and radii in normalised box units, as stored.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Iterator, NamedTuple, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from dispgns.graph import DEFAULT_BOUNDS, Bounds, GraphCapacity, host_count_pairs, host_max_cell_occupancy
+
+
+@struct.dataclass
+class Batch:
+    """``B`` padded examples (a pytree; ``capacity`` is static).
+
+    Attributes:
+      position: ``(B, W, N, D)`` float32 frames; ``W = C + 1 + k`` (inputs,
+        target, pushforward targets). Padding rows are zero.
+      radius: ``(B, N)`` float32; padding entries are 1.
+      mask: ``(B, N)`` bool, ``False`` for padding particles.
+      example: ``(B, 2)`` int32 ``(trajectory, first frame)`` of each example
+        (bookkeeping only).
+      capacity: static :class:`~dispgns.graph.GraphCapacity` of each
+        example's graph (ordered pairs ``s != r``), with head-room for the
+        noise.
+    """
+
+    position: jnp.ndarray
+    radius: jnp.ndarray
+    mask: jnp.ndarray
+    example: jnp.ndarray
+    capacity: GraphCapacity = struct.field(pytree_node=False)
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.position.shape[0])
+
+    @property
+    def node_budget(self) -> int:
+        return int(self.position.shape[2])
+
+    def with_capacity(self, capacity: GraphCapacity) -> "Batch":
+        """The same examples with another graph capacity (e.g. after an overflow)."""
+        return self.replace(capacity=capacity)
+
+
+class ExampleIndex(NamedTuple):
+    """All windows of a set of trajectories: ``trajectory (M,)`` and ``start (M,)`` int arrays."""
+
+    trajectory: np.ndarray
+    start: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.trajectory.shape[0])
+
+
+def example_index(frame_counts: Sequence[int], window: int) -> ExampleIndex:
+    """Every window of ``window`` consecutive frames, trajectory by trajectory, in order.
+
+    A trajectory of ``T`` frames gives ``max(0, T - window + 1)`` examples.
+    """
+    if window < 2:
+        raise ValueError(f"window must be >= 2 frames, got {window}")
+    traj, start = [], []
+    for k, t in enumerate(frame_counts):
+        m = max(0, int(t) - window + 1)
+        traj.append(np.full((m,), k, np.int64))
+        start.append(np.arange(m, dtype=np.int64))
+    return ExampleIndex(np.concatenate(traj) if traj else np.zeros((0,), np.int64),
+                        np.concatenate(start) if start else np.zeros((0,), np.int64))
+
+
+def _round_up(value: float, quantum: int) -> int:
+    return int(quantum * math.ceil(value / quantum))
+
+
+class BatchStream:
+    """Deterministic, resumable stream of padded training batches.
+
+    Args:
+      trajectories: sequence of objects with ``.position`` ``(T, N, D)`` and
+        ``.radius`` ``(N,)`` (normalised units), e.g. the dataset reader's.
+        They are copied to float32 arrays once.
+      input_sequence_length: ``C``.
+      batch_size: ``B``.
+      connectivity_radius: graph radius (normalised units).
+      seed: data-order seed.
+      pushforward_steps: ``k``; windows hold ``C + 1 + k`` frames.
+      shuffle: ``False`` keeps examples in order (e.g. for validation).
+      node_budgets: allowed particle-slot counts; ``None``: one budget, the
+        largest ``N`` rounded up to a multiple of 8.
+      num_capacity_levels: how many graph capacities to derive from the
+        quantiles of the examples' pair counts (each costs one compilation).
+      capacity_margin, capacity_extra: head-room of a capacity over the most
+        pairs found in the example's graph frames: ``pairs * (1 + margin) +
+        extra`` (the training noise moves pairs across the radius).
+      use_cell_list: build training graphs with the cell list (default: no,
+        all-pairs candidates, faster below a few hundred particles).
+      bounds: the box (only for the cell grid).
+    """
+
+    def __init__(self, trajectories: Sequence[Any], *, input_sequence_length: int, batch_size: int,
+                 connectivity_radius: float, seed: int = 0, pushforward_steps: int = 0, shuffle: bool = True,
+                 node_budgets: Sequence[int] | None = None, num_capacity_levels: int = 4,
+                 capacity_margin: float = 0.03, capacity_extra: int = 64, use_cell_list: bool = False,
+                 bounds: Bounds = DEFAULT_BOUNDS):
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.input_sequence_length = int(input_sequence_length)
+        self.pushforward_steps = int(pushforward_steps)
+        self.window = self.input_sequence_length + 1 + self.pushforward_steps
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.shuffle = bool(shuffle)
+        self.connectivity_radius = float(connectivity_radius)
+        self.capacity_margin = float(capacity_margin)
+        self.capacity_extra = int(capacity_extra)
+        self.positions, self.radii = [], []
+        for k, traj in enumerate(trajectories):
+            x = np.asarray(traj.position, np.float32)
+            a = np.asarray(traj.radius, np.float32)
+            if x.ndim != 3 or a.shape != (x.shape[1],):
+                raise ValueError(f"trajectory {k}: expected position (T, N, D) and radius (N,), "
+                                 f"got {x.shape} and {a.shape}")
+            self.positions.append(x)
+            self.radii.append(a)
+        if not self.positions:
+            raise ValueError("BatchStream needs at least one trajectory")
+        dims = {x.shape[2] for x in self.positions}
+        if len(dims) != 1:
+            raise ValueError(f"trajectories have different dimensions {sorted(dims)}")
+        self.dim = dims.pop()
+        self.index = example_index([x.shape[0] for x in self.positions], self.window)
+        if len(self.index) < self.batch_size:
+            raise ValueError(f"{len(self.index)} examples of {self.window} frames, fewer than one batch of "
+                             f"{self.batch_size}")
+
+        max_n = max(x.shape[1] for x in self.positions)
+        self.node_budgets = sorted({int(b) for b in node_budgets}) if node_budgets else [_round_up(max_n, 8)]
+        if self.node_budgets[-1] < max_n:
+            raise ValueError(f"node budgets {self.node_budgets} cannot hold {max_n} particles")
+
+        # Pairs in each example's graph frames: the last input and, with
+        # pushforward, the frames the model will have predicted.
+        c = self.input_sequence_length
+        per_frame = [host_count_pairs(x, connectivity_radius=self.connectivity_radius) for x in self.positions]
+        self.pairs = np.array([per_frame[t][s + c - 1:s + c + self.pushforward_steps].max()
+                               for t, s in zip(self.index.trajectory, self.index.start)], np.int64)
+        quantiles = np.quantile(self.pairs, np.arange(1, num_capacity_levels + 1) / num_capacity_levels)
+        self.capacity_levels = sorted({self._required(q) for q in quantiles} | {self._required(self.pairs.max())})
+        self.cell_capacity = None
+        if use_cell_list:
+            occupancy = max(host_max_cell_occupancy(x, connectivity_radius=self.connectivity_radius, bounds=bounds)
+                            for x in self.positions)
+            self.cell_capacity = occupancy + max(2, occupancy // 4)
+        self.position = 0
+
+    # -- sizes ---------------------------------------------------------------------------------
+    @property
+    def num_examples(self) -> int:
+        return len(self.index)
+
+    @property
+    def batches_per_epoch(self) -> int:
+        return self.num_examples // self.batch_size
+
+    def _required(self, pairs: float) -> int:
+        return _round_up(pairs * (1.0 + self.capacity_margin) + self.capacity_extra, 64)
+
+    def capacity_for_pairs(self, pairs: int) -> GraphCapacity:
+        """Smallest capacity level holding ``pairs`` with head-room (beyond the top level: rounded up)."""
+        need = self._required(pairs)
+        edges = next((level for level in self.capacity_levels if level >= need), need)
+        return GraphCapacity(edges=edges, cell=self.cell_capacity)
+
+    def grow(self, batch: Batch) -> Batch:
+        """``batch`` with the next capacity level (or 1.25 x) after an overflow of the training step."""
+        current = batch.capacity.edges
+        edges = next((level for level in self.capacity_levels if level > current), _round_up(1.25 * current, 64))
+        cell = None if batch.capacity.cell is None else batch.capacity.cell + max(2, batch.capacity.cell // 4)
+        return batch.with_capacity(GraphCapacity(edges=edges, cell=cell))
+
+    # -- order ---------------------------------------------------------------------------------
+    def epoch_order(self, epoch: int) -> np.ndarray:
+        """Example ids of ``epoch`` in the order they are drawn."""
+        if not self.shuffle:
+            return np.arange(self.num_examples)
+        return np.random.default_rng([self.seed, int(epoch)]).permutation(self.num_examples)
+
+    def batch_examples(self, i: int) -> np.ndarray:
+        """Example ids of batch ``i`` (counting from the start of training)."""
+        if i < 0:
+            raise ValueError(f"batch index must be >= 0, got {i}")
+        epoch, j = divmod(int(i), self.batches_per_epoch)
+        return self.epoch_order(epoch)[j * self.batch_size:(j + 1) * self.batch_size]
+
+    def batch(self, i: int) -> Batch:
+        """Batch ``i`` (a pure function of ``seed`` and ``i``)."""
+        return self.make_batch(self.batch_examples(i))
+
+    def make_batch(self, ids: Sequence[int]) -> Batch:
+        """A padded batch of the given example ids."""
+        ids = np.asarray(ids, np.int64)
+        trajs, starts = self.index.trajectory[ids], self.index.start[ids]
+        n_max = max(self.positions[t].shape[1] for t in trajs)
+        nodes = next(b for b in self.node_budgets if b >= n_max)
+        b = len(ids)
+        position = np.zeros((b, self.window, nodes, self.dim), np.float32)
+        radius = np.ones((b, nodes), np.float32)
+        mask = np.zeros((b, nodes), bool)
+        for k, (t, s) in enumerate(zip(trajs, starts)):
+            n = self.positions[t].shape[1]
+            position[k, :, :n] = self.positions[t][s:s + self.window]
+            radius[k, :n] = self.radii[t]
+            mask[k, :n] = True
+        capacity = self.capacity_for_pairs(int(self.pairs[ids].max()))
+        example = np.stack([trajs, starts], axis=1).astype(np.int32)
+        return Batch(position=position, radius=radius, mask=mask, example=example, capacity=capacity)
+
+    # -- iteration -------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[Batch]:
+        return self
+
+    def __next__(self) -> Batch:
+        batch = self.batch(self.position)
+        self.position += 1
+        return batch
+
+    def state_dict(self) -> dict[str, int]:
+        """What to checkpoint to resume the data order exactly."""
+        return {"position": int(self.position), "seed": self.seed}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        if int(state.get("seed", self.seed)) != self.seed:
+            raise ValueError(f"data-order seed mismatch: checkpoint {state['seed']}, stream {self.seed}")
+        self.position = int(state["position"])

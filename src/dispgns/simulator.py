@@ -1,0 +1,301 @@
+"""The learned simulator: one-step predictions and autoregressive rollouts.
+
+Units are normalised box units (positions divided by the half box size ``L``,
+the box is ``model_config.bounds``, by default ``[-1, 1]^D``) and frames (one
+frame = one time unit, 1.5 ms in the paper's data).
+
+One step, for the last ``C`` positions ``x_{t-C+1} .. x_t`` of every particle:
+
+1. radius graph at ``x_t`` (:mod:`dispgns.graph`), node and edge features
+   (:mod:`dispgns.features`), velocity features standardised with
+   ``params["normalization"]``;
+2. network output ``y`` (:mod:`dispgns.model`), acceleration
+   ``acc = (y * acceleration_std + acceleration_mean) * a_i``;
+3. ``v_new = (x_t - x_{t-1}) + acc``, ``x_new = x_t + v_new``.
+
+Graph capacity. Every function takes ``capacity`` (a
+:class:`~dispgns.graph.GraphCapacity` or an int, the number of ordered pairs
+``s != r`` the graph can hold). Called with concrete arrays, ``None`` sizes it
+from the data and an overflow grows it and recomputes; nothing is ever
+dropped. Under a JAX transformation (``jit``, ``vmap``, ``grad`` with respect
+to the positions or radii) sizes cannot change: ``capacity`` is then used as
+given (``None`` means all ``N (N - 1)`` pairs: exact but slow) and any
+overflow poisons the affected outputs with NaN instead of silently dropping
+edges.
+
+Padding particles (``mask == False``) never influence real ones; their
+outputs are zero accelerations and unchanged positions.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from dispgns import features as features_lib
+from dispgns import graph as graph_lib
+from dispgns.graph import Graph, GraphCapacity
+from dispgns.model import ModelConfig, apply_network
+
+
+def _is_traced(*trees) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
+
+
+def _as_capacity(capacity) -> GraphCapacity | None:
+    if capacity is None or isinstance(capacity, GraphCapacity):
+        return capacity
+    return GraphCapacity(edges=int(capacity))
+
+
+def _check(position, radius, mask, model_config: ModelConfig, *, leading: int):
+    """Validate shapes; return arrays (float positions, radius in their dtype, bool mask)."""
+    position = jnp.asarray(position)
+    if not jnp.issubdtype(position.dtype, jnp.floating):
+        position = position.astype(jnp.float32)
+    radius = jnp.asarray(radius, position.dtype)
+    c, d = model_config.input_sequence_length, model_config.dim
+    if position.ndim != 3 or position.shape[0] != leading or position.shape[2] != d:
+        raise ValueError(f"positions must have shape ({leading}, N, {d}) (C = input_sequence_length = {c}, "
+                         f"D = dim), got {position.shape}")
+    n = position.shape[1]
+    if radius.shape != (n,):
+        raise ValueError(f"radius must have shape ({n},), got {radius.shape}")
+    # numpy, not jnp: a default mask must stay concrete inside a user's jit.
+    mask = np.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
+    if mask.shape != (n,):
+        raise ValueError(f"mask must have shape ({n},), got {mask.shape}")
+    return position, radius, mask
+
+
+def sanitize(position_seq: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray, model_config: ModelConfig):
+    """Padding rows replaced by parked positions and unit radii (finite features, no edges to real particles)."""
+    position_seq = graph_lib.park_padding(position_seq, mask, connectivity_radius=model_config.connectivity_radius,
+                                          bounds=model_config.bounds)
+    radius = jnp.where(mask, radius, jnp.ones_like(radius))
+    return position_seq, radius
+
+
+def build_graph(position: jnp.ndarray, mask: jnp.ndarray, capacity: GraphCapacity,
+                model_config: ModelConfig) -> Graph:
+    """The radius graph of ``position`` ``(N, D)`` for ``model_config`` (see :func:`dispgns.graph.radius_graph`)."""
+    return graph_lib.radius_graph(position, mask, connectivity_radius=model_config.connectivity_radius,
+                                  capacity=capacity, bounds=model_config.bounds)
+
+
+def network_output(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph: Graph, *,
+                   model_config: ModelConfig) -> jnp.ndarray:
+    """Standardised network output ``(N, D)`` for sanitised inputs and a graph (what the loss compares).
+
+    Args:
+      params: from :func:`dispgns.init_params`.
+      position_seq: ``(C, N, D)``, padding rows sanitised (:func:`sanitize`).
+      radius: ``(N,)``, padding radii > 0.
+      graph: from :func:`build_graph` on ``position_seq[-1]``.
+    """
+    c = model_config
+    norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
+    nodes = features_lib.node_features(position_seq, radius, bounds=c.bounds, boundary_clip=c.boundary_clip)
+    n_vel = (c.input_sequence_length - 1) * c.dim
+    mean = jnp.tile(norm["velocity_mean"], c.input_sequence_length - 1).astype(nodes.dtype)
+    std = jnp.tile(norm["velocity_std"], c.input_sequence_length - 1).astype(nodes.dtype)
+    nodes = jnp.concatenate([(nodes[:, :n_vel] - mean) / std, nodes[:, n_vel:]], axis=-1)
+    edges = features_lib.edge_features(position_seq, radius, graph.senders, graph.receivers)
+    return apply_network(params["network"], nodes, edges, graph.senders, graph.receivers, model_config=c)
+
+
+def acceleration_from_output(params, output: jnp.ndarray, radius: jnp.ndarray) -> jnp.ndarray:
+    """De-standardise the network output: ``(y * std + mean) * a_i``, ``(N, D)`` in box units / frame^2."""
+    norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
+    return (output * norm["acceleration_std"] + norm["acceleration_mean"]) * radius[:, None]
+
+
+def one_step(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig):
+    """One step with a fixed graph capacity (pure; no validation, no overflow handling).
+
+    Args:
+      position_seq: ``(C, N, D)``; radius: ``(N,)``; mask: ``(N,)`` bool.
+      capacity: static :class:`GraphCapacity`; model_config: static.
+
+    Returns:
+      ``(acceleration (N, D), next position (N, D), overflow ())``; when
+      ``overflow`` is True the graph missed edges and the outputs are wrong.
+    """
+    x, a = sanitize(position_seq, radius, mask, model_config)
+    graph = build_graph(x[-1], mask, capacity, model_config)
+    acc = acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
+    acc = jnp.where(mask[:, None], acc, 0.0).astype(position_seq.dtype)
+    last = position_seq[-1]
+    velocity = last - position_seq[-2] + acc
+    next_position = jnp.where(mask[:, None], last + velocity, last)
+    return acc, next_position, graph.overflow
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "model_config"))
+def _step_jit(params, position_seq, radius, mask, *, capacity, model_config):
+    return one_step(params, position_seq, radius, mask, capacity, model_config)
+
+
+def _full_capacity(n: int) -> GraphCapacity:
+    return GraphCapacity(edges=n * (n - 1))
+
+
+def _predict(params, position_seq, radius, mask, capacity, model_config):
+    position_seq, radius, mask = _check(position_seq, radius, mask, model_config,
+                                        leading=model_config.input_sequence_length)
+    n = position_seq.shape[1]
+    capacity = _as_capacity(capacity)
+    if _is_traced(params, position_seq, radius, mask):
+        # Under a transformation the graph size cannot adapt: size it from the
+        # positions when they are concrete, else take all pairs.
+        if capacity is None:
+            capacity = _full_capacity(n) if _is_traced(position_seq, mask) else graph_lib.capacity_for(
+                np.asarray(position_seq)[-1], mask, connectivity_radius=model_config.connectivity_radius,
+                bounds=model_config.bounds)
+        acc, nxt, overflow = one_step(params, position_seq, radius, mask, capacity, model_config)
+        poison = jnp.where(overflow, jnp.nan, 0.0).astype(acc.dtype)
+        return acc + poison, nxt + poison
+    if capacity is None:
+        capacity = graph_lib.capacity_for(position_seq[-1], mask, connectivity_radius=model_config.connectivity_radius,
+                                          bounds=model_config.bounds)
+    while True:
+        acc, nxt, overflow = _step_jit(params, position_seq, radius, mask, capacity=capacity,
+                                       model_config=model_config)
+        if not bool(overflow):
+            return acc, nxt
+        capacity = _grown(capacity, position_seq[-1], mask, model_config)
+
+
+def predict_acceleration(params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None):
+    """Predicted acceleration of every particle for one step.
+
+    Args:
+      params: ``{"network", "normalization"}`` from :func:`dispgns.init_params`.
+      position_seq: ``(C, N, D)`` last ``C`` positions, oldest first
+        (normalised units).
+      radius: ``(N,)`` radii (normalised units).
+      model_config: static :class:`ModelConfig`.
+      mask: optional ``(N,)`` bool, ``False`` for padding particles.
+      capacity: optional graph capacity (see the module docstring).
+
+    Returns:
+      ``(N, D)`` acceleration in normalised units per frame^2 (the change of
+      velocity over the next frame); zero for padding particles.
+    """
+    return _predict(params, position_seq, radius, mask, capacity, model_config)[0]
+
+
+def predict_position(params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None):
+    """Predicted next position ``x_t + (x_t - x_{t-1}) + acc``, ``(N, D)`` (arguments as :func:`predict_acceleration`).
+
+    Padding particles keep their last position.
+    """
+    return _predict(params, position_seq, radius, mask, capacity, model_config)[1]
+
+
+def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCapacity, model_config: ModelConfig,
+                overflow=None):
+    """``length`` steps from ``window`` (C, N, D); returns (last window, positions (length, N, D), overflow)."""
+
+    def body(carry, _):
+        window, overflow = carry
+        _, nxt, step_overflow = one_step(params, window, radius, mask, capacity, model_config)
+        overflow = overflow | step_overflow
+        window = jnp.concatenate([window[1:], nxt[None]], axis=0)
+        return (window, overflow), (nxt, overflow)
+
+    if overflow is None:
+        overflow = jnp.zeros((), bool)
+    (window, overflow), (positions, flags) = lax.scan(body, (window, overflow), None, length=length)
+    return window, positions, flags
+
+
+_scan_steps_jit = jax.jit(_scan_steps, static_argnames=("length", "capacity", "model_config"))
+
+
+def rollout(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
+            capacity=None, chunk_size: int = 100):
+    """Autoregressive rollout of ``n_steps`` frames (``lax.scan``, graph rebuilt at every step).
+
+    With concrete arrays the steps run in compiled chunks of about
+    ``chunk_size``; after each chunk the overflow flag is checked and, if
+    set, the capacity is grown and the chunk recomputed, so the result is
+    exactly that of a graph without any size limit. Under ``jit``/``vmap``/
+    ``grad`` the whole rollout is one scan with the given ``capacity`` (when
+    ``None``: sized from concrete initial positions with 50 % head-room, or
+    all ``N (N - 1)`` pairs if they are traced too); every frame from the
+    first overflowing step on is NaN. It is vmappable over trajectories of
+    equal (padded) size and differentiable with respect to ``params``,
+    positions and radii.
+
+    Args:
+      params: from :func:`dispgns.init_params`.
+      initial_positions: ``(C, N, D)`` first ``C`` frames (normalised units).
+      radius: ``(N,)`` radii (normalised units).
+      n_steps: static, number of frames to predict.
+      model_config: static :class:`ModelConfig`.
+      mask: optional ``(N,)`` bool, ``False`` for padding particles.
+      capacity: optional graph capacity.
+      chunk_size: static, steps per compiled chunk in the concrete path.
+
+    Returns:
+      ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
+    """
+    window, radius, mask = _check(initial_positions, radius, mask, model_config,
+                                  leading=model_config.input_sequence_length)
+    n = window.shape[1]
+    if n_steps < 1:
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    capacity = _as_capacity(capacity)
+    if _is_traced(params, window, radius, mask):
+        if capacity is None:
+            if _is_traced(window, mask):
+                capacity = _full_capacity(n)
+            else:
+                capacity = graph_lib.capacity_for(np.asarray(window)[-1], mask,
+                                                  connectivity_radius=model_config.connectivity_radius,
+                                                  bounds=model_config.bounds, margin=0.5)
+        _, positions, flags = _scan_steps(params, window, radius, mask, length=n_steps, capacity=capacity,
+                                          model_config=model_config)
+        return positions + jnp.where(flags, jnp.nan, 0.0).astype(positions.dtype)[:, None, None]
+
+    if capacity is None:
+        capacity = graph_lib.capacity_for(window[-1], mask, connectivity_radius=model_config.connectivity_radius,
+                                          bounds=model_config.bounds, margin=0.1)
+    n_chunks = math.ceil(n_steps / max(1, chunk_size))
+    length = math.ceil(n_steps / n_chunks)
+    chunks, done = [], 0
+    while done < n_steps:
+        new_window, positions, flags = _scan_steps_jit(params, window, radius, mask, length=length,
+                                                       capacity=capacity, model_config=model_config)
+        keep = min(length, n_steps - done)
+        flags = np.asarray(flags)
+        if flags[keep - 1]:
+            # Steps before the first overflow used complete graphs: keep them,
+            # resize from the frame that overflowed and carry on from there.
+            valid = int(np.argmax(flags))
+            if valid:
+                chunks.append(positions[:valid])
+                window = jnp.concatenate([window, positions[:valid]], axis=0)[-window.shape[0]:]
+                done += valid
+            capacity = _grown(capacity, window[-1], mask, model_config)
+            continue
+        chunks.append(positions[:keep])
+        window = new_window
+        done += keep
+    return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
+
+
+def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -> GraphCapacity:
+    """A capacity larger than ``capacity`` that fits the graph of ``position`` with head-room."""
+    n = position.shape[0]
+    grown = graph_lib.grow_capacity(capacity, n, factor=1.25)
+    fit = graph_lib.capacity_for(position, mask, connectivity_radius=model_config.connectivity_radius,
+                                 bounds=model_config.bounds, use_cell_list=capacity.cell is not None, margin=0.1)
+    cell = None if capacity.cell is None else max(grown.cell, fit.cell)
+    return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)

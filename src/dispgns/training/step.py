@@ -1,0 +1,266 @@
+"""Training configuration, optimiser, loss and the jitted training step.
+
+One step on a :class:`~dispgns.data.examples.Batch` of ``B`` examples:
+
+1. random-walk noise on the ``C`` input frames (:mod:`.noise`);
+2. optionally ``k`` pushforward steps: the model advances the inputs ``k``
+   frames without gradient, and the loss is taken on the next step from its
+   own predictions;
+3. graph at the last input frame (capacity ``batch.capacity``), network,
+   target acceleration corrected for the input corruption, divided by the
+   radius and standardised with ``params["normalization"]``;
+4. loss: squared error summed over ``D``, averaged over the real particles of
+   the batch; Adam on ``params["network"]`` only.
+
+If some example's graph needs more than ``batch.capacity`` the step does not
+update anything (``metrics["overflow"]`` is True, ``state.step`` unchanged):
+retry the same batch with a larger capacity (``BatchStream.grow``), as
+:func:`train_step_checked` does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Mapping
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+from jax import lax
+
+from dispgns.data.examples import Batch
+from dispgns.model import ModelConfig, identity_normalization, init_params
+from dispgns.simulator import one_step, build_graph, network_output, sanitize
+from dispgns.training.noise import random_walk_noise, target_acceleration
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (hashable; saved with checkpoints).
+
+    Attributes:
+      noise_std: std of the random-walk noise on the last input velocity
+        (normalised units per frame), 5e-4 as in the paper.
+      batch_size: examples per step (2).
+      learning_rate: initial rate (1e-4); the rate is
+        ``max(learning_rate * lr_decay ** (step / lr_decay_steps), min_learning_rate)``.
+      lr_decay, lr_decay_steps: 0.1 every 2e5 steps, as the authors.
+      min_learning_rate: the floor the authors lacked (1e-6).
+      standardize: standardise radius-normalised velocities and accelerations
+        with dataset statistics (True); False is the authors' recipe.
+      pushforward_steps: unrolled steps without gradient before the loss (0).
+      num_steps: training steps of a full run (2 million in the paper).
+      seed: seed of the parameter initialisation, data order and noise.
+    """
+
+    noise_std: float = 5e-4
+    batch_size: int = 2
+    learning_rate: float = 1e-4
+    lr_decay: float = 0.1
+    lr_decay_steps: float = 2e5
+    min_learning_rate: float = 1e-6
+    standardize: bool = True
+    pushforward_steps: int = 0
+    num_steps: int = 2_000_000
+    seed: int = 0
+
+    def __post_init__(self):
+        if not (self.noise_std >= 0):
+            raise ValueError(f"TrainConfig.noise_std must be >= 0, got {self.noise_std!r}")
+        for name in ("batch_size", "num_steps"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
+                raise ValueError(f"TrainConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
+        if int(self.pushforward_steps) != self.pushforward_steps or self.pushforward_steps < 0:
+            raise ValueError(f"TrainConfig.pushforward_steps must be an integer >= 0, got {self.pushforward_steps!r}")
+        for name in ("learning_rate", "lr_decay", "lr_decay_steps"):
+            if not (getattr(self, name) > 0):
+                raise ValueError(f"TrainConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        if not (0 <= self.min_learning_rate <= self.learning_rate):
+            raise ValueError(f"TrainConfig.min_learning_rate must lie in [0, learning_rate], "
+                             f"got {self.min_learning_rate!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "TrainConfig":
+        """Build a config from a mapping; unknown keys are an error."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown TrainConfig field(s) {unknown}; expected a subset of {sorted(known)}")
+        return cls(**values)
+
+
+def learning_rate_schedule(train_config: TrainConfig):
+    """``step -> max(lr * decay ** (step / decay_steps), min_lr)`` (an optax schedule)."""
+    c = train_config
+
+    def schedule(step):
+        rate = c.learning_rate * c.lr_decay ** (jnp.asarray(step, jnp.float32) / c.lr_decay_steps)
+        return jnp.maximum(rate, c.min_learning_rate)
+
+    return schedule
+
+
+@functools.lru_cache(maxsize=None)
+def make_optimizer(train_config: TrainConfig) -> optax.GradientTransformation:
+    """Adam with :func:`learning_rate_schedule` (cached per config, so jit caches stay warm)."""
+    return optax.adam(learning_rate_schedule(train_config))
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a training run evolves (a pytree; the configs are static).
+
+    Attributes:
+      params: ``{"network", "normalization"}`` (see :func:`dispgns.init_params`).
+      opt_state: Adam state of ``params["network"]``.
+      step: ``()`` int32, optimiser steps taken (= batches consumed).
+      model_config, train_config: static.
+
+    Checkpoint ``params``, ``opt_state`` and ``step`` (plus the configs);
+    restore into the structure of :func:`create_train_state`.
+    """
+
+    params: Any
+    opt_state: Any
+    step: jnp.ndarray
+    model_config: ModelConfig = struct.field(pytree_node=False)
+    train_config: TrainConfig = struct.field(pytree_node=False)
+
+
+def create_train_state(key: jax.Array, model_config: ModelConfig, train_config: TrainConfig,
+                       normalization: Mapping[str, Any] | None = None) -> TrainState:
+    """Fresh parameters and optimiser state.
+
+    Args:
+      key: PRNG key for the initial weights.
+      normalization: statistics from
+        :func:`dispgns.training.compute_normalization` (required when
+        ``train_config.standardize``; ignored otherwise).
+    """
+    if train_config.standardize:
+        if normalization is None:
+            raise ValueError("TrainConfig.standardize is on: pass normalization=compute_normalization(train "
+                             "trajectories, noise_std=train_config.noise_std), or set standardize=False")
+    else:
+        normalization = identity_normalization(model_config.dim)
+    params = init_params(key, model_config, normalization)
+    opt_state = make_optimizer(train_config).init(params["network"])
+    return TrainState(params=params, opt_state=opt_state, step=jnp.zeros((), jnp.int32),
+                      model_config=model_config, train_config=train_config)
+
+
+def _example_loss(network, normalization, position, radius, mask, key, capacity, model_config: ModelConfig,
+                  train_config: TrainConfig):
+    """Sum of squared errors over the real particles of one example, their count, and overflow."""
+    c = model_config.input_sequence_length
+    k = train_config.pushforward_steps
+    params = {"network": network, "normalization": normalization}
+    inputs = position[:c]
+    window = inputs + random_walk_noise(key, inputs, train_config.noise_std, mask)
+    overflow = jnp.zeros((), bool)
+    if k:
+        frozen = jax.tree_util.tree_map(lax.stop_gradient, params)
+
+        def advance(carry, _):
+            window, overflow = carry
+            _, nxt, step_overflow = one_step(frozen, window, radius, mask, capacity, model_config)
+            window = jnp.concatenate([window[1:], lax.stop_gradient(nxt)[None]], axis=0)
+            return (window, overflow | step_overflow), None
+
+        (window, overflow), _ = lax.scan(advance, (window, overflow), None, length=k)
+    x, a = sanitize(window, radius, mask, model_config)
+    graph = build_graph(x[-1], mask, capacity, model_config)
+    output = network_output(params, x, a, graph, model_config=model_config)
+    target = target_acceleration(position[c + k], position[c + k - 1], window) / a[:, None]
+    target = (target - normalization["acceleration_mean"]) / normalization["acceleration_std"]
+    error = jnp.sum((output - lax.stop_gradient(target)) ** 2, axis=-1)
+    error = jnp.where(mask, error, 0.0)
+    return jnp.sum(error), jnp.sum(mask, dtype=jnp.float32), overflow | graph.overflow
+
+
+def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: ModelConfig,
+            train_config: TrainConfig):
+    """Mean over the real particles of the batch of the squared error summed over D.
+
+    Returns ``(loss, {"overflow": bool})``.
+    """
+    keys = jax.random.split(key, batch.position.shape[0])
+    sq, count, overflow = jax.vmap(
+        lambda x, a, m, k: _example_loss(network, normalization, x, a, m, k, batch.capacity, model_config,
+                                         train_config))(batch.position, batch.radius, batch.mask, keys)
+    loss = jnp.sum(sq) / jnp.maximum(jnp.sum(count), 1.0)
+    return loss, {"overflow": jnp.any(overflow)}
+
+
+@jax.jit
+def train_step(state: TrainState, batch: Batch, key: jax.Array):
+    """One optimiser step (jitted; compiles once per batch shape and capacity).
+
+    Args:
+      state: :class:`TrainState`.
+      batch: :class:`~dispgns.data.examples.Batch` with ``W = C + 1 +
+        pushforward_steps`` frames.
+      key: PRNG key of this step's noise; use ``jax.random.fold_in(key0,
+        state.step)`` for runs that resume exactly.
+
+    Returns:
+      ``(new_state, metrics)``; metrics: ``loss`` (before the update),
+      ``grad_norm``, ``learning_rate``, ``overflow`` (True: nothing was
+      updated, retry with a larger ``batch.capacity``).
+    """
+    mc, tc = state.model_config, state.train_config
+    window = batch.position.shape[1]
+    if window != mc.input_sequence_length + 1 + tc.pushforward_steps:
+        raise ValueError(f"batch windows have {window} frames, expected C + 1 + pushforward_steps = "
+                         f"{mc.input_sequence_length + 1 + tc.pushforward_steps}")
+    normalization = state.params["normalization"]
+    (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+        state.params["network"], normalization, batch, key, mc, tc)
+    tx = make_optimizer(tc)
+    updates, opt_state = tx.update(grads, state.opt_state, state.params["network"])
+    network = optax.apply_updates(state.params["network"], updates)
+    ok = ~aux["overflow"]
+    keep = lambda new, old: jax.tree_util.tree_map(lambda n, o: jnp.where(ok, n, o), new, old)
+    new_state = state.replace(
+        params={"network": keep(network, state.params["network"]), "normalization": normalization},
+        opt_state=keep(opt_state, state.opt_state),
+        step=state.step + ok.astype(jnp.int32),
+    )
+    metrics = {
+        "loss": loss,
+        "grad_norm": optax.tree.norm(grads),
+        "learning_rate": learning_rate_schedule(tc)(state.step),
+        "overflow": aux["overflow"],
+    }
+    return new_state, metrics
+
+
+def train_step_checked(state: TrainState, batch: Batch, key: jax.Array, grow=None, max_retries: int = 8):
+    """:func:`train_step`, retried with a larger capacity until no graph overflows (host loop).
+
+    Args:
+      grow: ``batch -> larger batch`` (e.g. ``BatchStream.grow``); default:
+        edges x 1.25.
+
+    Returns:
+      ``(new_state, metrics, batch)``: the batch actually used (keep its
+      capacity for the next batches if it keeps overflowing).
+    """
+    from dispgns.graph import GraphCapacity, round_capacity
+
+    for _ in range(max_retries + 1):
+        new_state, metrics = train_step(state, batch, key)
+        if not bool(metrics["overflow"]):
+            return new_state, metrics, batch
+        if grow is None:
+            cap = batch.capacity
+            batch = batch.with_capacity(GraphCapacity(edges=round_capacity(int(cap.edges * 1.25), margin=0.0),
+                                                      cell=None if cap.cell is None else cap.cell + 2))
+        else:
+            batch = grow(batch)
+    raise RuntimeError(f"graph capacity still overflows after {max_retries} increases (now {batch.capacity})")

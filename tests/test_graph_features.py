@@ -1,0 +1,144 @@
+"""Radius graphs and the paper's features, against the reference file and invariances."""
+
+import functools
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dispgns import features as F
+from dispgns import graph as G
+
+DATA = Path(__file__).parent / "data" / "features.npz"
+
+
+@pytest.fixture(scope="module")
+def ref():
+    with np.load(DATA) as d:
+        return {k: d[k] for k in d.files}
+
+
+def _graph(x, mask=None, *, edges, cell=None):
+    return _graph_jit(jnp.asarray(x), None if mask is None else jnp.asarray(mask), G.GraphCapacity(edges, cell))
+
+
+@functools.partial(jax.jit, static_argnums=(2,))
+def _graph_jit(x, mask, capacity):
+    return G.radius_graph(x, mask, connectivity_radius=0.2, capacity=capacity)
+
+
+def _edge_set(g, n):
+    s, r = np.asarray(g.senders), np.asarray(g.receivers)
+    keep = r < n
+    return sorted(zip(r[keep].tolist(), s[keep].tolist()))
+
+
+def _reference_edges(ref):
+    return sorted(zip(ref["receivers"].tolist(), ref["senders"].tolist()))
+
+
+def test_sizes():
+    assert F.node_feature_size(6, 2) == 15 and F.edge_feature_size(6, 2) == 14
+    assert F.node_feature_size(4, 3) == 16 and F.edge_feature_size(4, 3) == 14
+
+
+def test_features_match_reference_float64(ref):
+    with jax.enable_x64(True):
+        nodes, edges, senders, receivers = F.graph_features(
+            jnp.asarray(ref["positions"], jnp.float64), jnp.asarray(ref["radius"], jnp.float64),
+            connectivity_radius=float(ref["connectivity_radius"]), boundary_clip=float(ref["clip"]))
+        assert nodes.dtype == jnp.float64 and edges.dtype == jnp.float64
+        np.testing.assert_array_equal(np.asarray(senders), ref["senders"])
+        np.testing.assert_array_equal(np.asarray(receivers), ref["receivers"])
+        np.testing.assert_allclose(np.asarray(nodes), ref["node_features"], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(edges), ref["edge_features"], rtol=0, atol=1e-9)
+
+
+def test_features_match_reference_float32(ref):
+    nodes, edges, senders, receivers = F.graph_features(
+        jnp.asarray(ref["positions"], jnp.float32), jnp.asarray(ref["radius"], jnp.float32), connectivity_radius=0.2)
+    assert nodes.dtype == jnp.float32
+    assert nodes.shape == (150, 15) and edges.shape == (1562, 14)
+    np.testing.assert_array_equal(np.asarray(senders), ref["senders"])
+    np.testing.assert_array_equal(np.asarray(receivers), ref["receivers"])
+    np.testing.assert_allclose(np.asarray(nodes), ref["node_features"], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(edges), ref["edge_features"], rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("cell", [None, 12])
+def test_radius_graph_brute_force_and_cell_list(ref, cell):
+    x = jnp.asarray(ref["positions"][-1], jnp.float32)
+    g = _graph(x, edges=1500, cell=cell)
+    assert g.senders.shape == (1500 + 150,)
+    assert not bool(g.overflow)
+    r = np.asarray(g.receivers)
+    assert np.all(np.diff(r) >= 0), "edges must be sorted by receiver"
+    assert _edge_set(g, 150) == _reference_edges(ref)
+    small = _graph(x, edges=1000, cell=cell)
+    assert bool(small.overflow)
+
+
+def test_full_capacity_has_no_spurious_edge(ref):
+    # With every candidate slot kept, jax-md leaves a rejected candidate in the last slot.
+    x = jnp.asarray(ref["positions"][-1, :40], jnp.float32)
+    n = 40
+    full = _graph(x, edges=n * (n - 1))
+    ok = _graph(x, edges=600)
+    assert _edge_set(full, n) == _edge_set(ok, n)
+    assert not bool(full.overflow)
+
+
+def test_padding_never_pairs(ref):
+    x = np.asarray(ref["positions"][-1], np.float32)
+    pad = 70
+    # Padding rows placed right on top of real particles: they must be parked away.
+    xp = np.concatenate([x, x[:pad]], axis=0)
+    mask = np.arange(150 + pad) < 150
+    for cell in (None, 16):
+        g = _graph(xp, mask, edges=1500, cell=cell)
+        assert not bool(g.overflow)
+        s, r = np.asarray(g.senders), np.asarray(g.receivers)
+        keep = r < 150 + pad
+        s, r = s[keep], r[keep]
+        real = (s < 150) & (r < 150)
+        assert sorted(zip(r[real].tolist(), s[real].tolist())) == _reference_edges(ref)
+        # Padding particles only have their self-loop.
+        assert np.all(s[~real] == r[~real]) and np.sum(~real) == pad
+
+
+def test_capacity_helpers(ref):
+    x = ref["positions"][-1]
+    assert G.host_count_pairs(x, connectivity_radius=0.2) == 1562 - 150
+    cap = G.capacity_for(x, connectivity_radius=0.2)
+    assert cap.edges >= 1412 and cap.cell is None
+    assert G.grow_capacity(cap).edges > cap.edges
+    cap_cells = G.capacity_for(x, connectivity_radius=0.2, use_cell_list=True)
+    occupancy = G.host_max_cell_occupancy(x, connectivity_radius=0.2)
+    assert cap_cells.cell >= occupancy >= 1
+
+
+def test_translation_invariance_of_features(ref):
+    pos = jnp.asarray(ref["positions"], jnp.float32)
+    a = jnp.asarray(ref["radius"], jnp.float32)
+    shift = np.array([0.375, -0.625], np.float32)
+    bounds = tuple((-1.0 + s, 1.0 + s) for s in shift.tolist())
+    n0, e0, s0, r0 = F.graph_features(pos, a, connectivity_radius=0.2)
+    n1, e1, s1, r1 = F.graph_features(pos + shift, a, bounds=bounds, connectivity_radius=0.2)
+    np.testing.assert_array_equal(np.asarray(s0), np.asarray(s1))
+    np.testing.assert_array_equal(np.asarray(r0), np.asarray(r1))
+    np.testing.assert_allclose(np.asarray(n0), np.asarray(n1), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(e0), np.asarray(e1), atol=1e-5)
+
+
+def test_feature_gradients_are_finite_on_self_loops(ref):
+    pos = jnp.asarray(ref["positions"][:, :20], jnp.float32)
+    a = jnp.asarray(ref["radius"][:20], jnp.float32)
+    idx = jnp.arange(20)
+
+    def total(pos, a):
+        return jnp.sum(F.edge_features(pos, a, idx, idx) ** 2) + jnp.sum(F.node_features(pos, a) ** 2)
+
+    grads = jax.jit(jax.grad(total, argnums=(0, 1)))(pos, a)
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)

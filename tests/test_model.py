@@ -1,0 +1,131 @@
+"""The graph network: size, invariances, padding, jit, and the edge-update defect."""
+
+import functools
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dispgns
+from dispgns.model import ModelConfig, count_parameters, init_params
+from dispgns.simulator import predict_acceleration
+
+DATA = Path(__file__).parent / "data" / "features.npz"
+TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
+N = 48
+CAPACITY = 512
+
+
+@pytest.fixture(scope="module")
+def inputs():
+    with np.load(DATA) as d:
+        x = jnp.asarray(d["positions"][:, :N], jnp.float32)
+        a = jnp.asarray(d["radius"][:N], jnp.float32)
+    return x, a
+
+
+@pytest.fixture(scope="module")
+def params():
+    norm = {"velocity_mean": jnp.array([0.01, -0.02]), "velocity_std": jnp.array([0.05, 0.08]),
+            "acceleration_mean": jnp.array([0.0, -0.001]), "acceleration_std": jnp.array([0.01, 0.02])}
+    return init_params(jax.random.key(0), TINY, norm)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "capacity"))
+def _acc(params, x, a, mask=None, *, config=TINY, capacity=CAPACITY):
+    return predict_acceleration(params, x, a, model_config=config, mask=mask, capacity=capacity)
+
+
+def test_parameter_count_of_the_paper_model():
+    shapes = jax.eval_shape(lambda k: init_params(k, ModelConfig()), jax.random.key(0))
+    assert count_parameters(shapes["network"]) == 2_587_010
+    first = shapes["network"]["block_0"]["message"]["Dense_0"]["kernel"]
+    assert first.shape == (384, 128)
+
+
+def test_config_round_trip_and_validation():
+    c = ModelConfig(latent_size=32, bounds=[[-2, 2], [-1, 1]])
+    assert c.bounds == ((-2.0, 2.0), (-1.0, 1.0)) and hash(c)
+    assert ModelConfig.from_dict(c.to_dict()) == c
+    with pytest.raises(ValueError, match="activation"):
+        ModelConfig(activation="swish2")
+    with pytest.raises(ValueError, match="unknown ModelConfig"):
+        ModelConfig.from_dict({"latnet_size": 3})
+
+
+def test_public_api_is_reexported():
+    for name in ("ModelConfig", "init_params", "predict_acceleration", "predict_position", "rollout"):
+        assert hasattr(dispgns, name), name
+
+
+def test_jit_equals_eager(params, inputs):
+    x, a = inputs
+    eager = predict_acceleration(params, x, a, model_config=TINY)
+    jitted = _acc(params, x, a)
+    assert eager.shape == (N, 2)
+    np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-5, atol=1e-7)
+
+
+def test_permutation_equivariance(params, inputs):
+    x, a = inputs
+    perm = np.random.default_rng(0).permutation(N)
+    base = _acc(params, x, a)
+    permuted = _acc(params, x[:, perm], a[perm])
+    np.testing.assert_allclose(np.asarray(permuted), np.asarray(base)[perm], rtol=1e-4, atol=1e-7)
+
+
+def test_translation_invariance(params, inputs):
+    x, a = inputs
+    shift = jnp.array([0.25, -0.5], jnp.float32)
+    shifted = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2,
+                          bounds=((-0.75, 1.25), (-1.5, 0.5)))
+    base = _acc(params, x, a)
+    moved = _acc(params, x + shift, a, config=shifted)
+    np.testing.assert_allclose(np.asarray(moved), np.asarray(base), rtol=1e-4, atol=1e-7)
+
+
+def test_padding_changes_no_output_nor_gradient(params, inputs):
+    x, a = inputs
+    pad = 13
+    # Padding rows sit on top of real particles and have a zero radius: both must be harmless.
+    xp = jnp.concatenate([x, x[:, :pad]], axis=1)
+    ap = jnp.concatenate([a, jnp.zeros((pad,))])
+    mask = jnp.arange(N + pad) < N
+
+    def loss(p, x, a, mask, capacity):
+        acc = predict_acceleration(p, x, a, model_config=TINY, mask=mask, capacity=capacity)
+        return jnp.sum(jnp.where(mask[:, None] if mask is not None else True, acc, 0.0) ** 2), acc
+
+    grad = jax.jit(jax.grad(loss, has_aux=True), static_argnums=(4,))
+    g0, acc0 = grad(params, x, a, None, CAPACITY)
+    g1, acc1 = grad(params, xp, ap, mask, CAPACITY + 200)  # more particle and edge slots
+    np.testing.assert_allclose(np.asarray(acc1[:N]), np.asarray(acc0), rtol=1e-5, atol=1e-8)
+    np.testing.assert_array_equal(np.asarray(acc1[N:]), 0.0)
+    for l0, l1 in zip(jax.tree_util.tree_leaves(g0), jax.tree_util.tree_leaves(g1)):
+        assert np.all(np.isfinite(np.asarray(l1)))
+        np.testing.assert_allclose(np.asarray(l1), np.asarray(l0), rtol=1e-4, atol=1e-9)
+
+
+def test_edge_embeddings_are_updated_by_messages(params, inputs):
+    # The authors' block returned its input edges, so the edge MLPs had no effect.
+    x, a = inputs
+
+    def loss(net):
+        p = {"network": net, "normalization": params["normalization"]}
+        return jnp.sum(predict_acceleration(p, x, a, model_config=TINY, capacity=CAPACITY) ** 2)
+
+    g = jax.jit(jax.grad(loss))(params["network"])
+    edge_grad = g["block_0"]["edge"]["Dense_0"]["kernel"]
+    assert float(jnp.max(jnp.abs(edge_grad))) > 0
+
+
+def test_bfloat16_matmuls_stay_close(params, inputs):
+    x, a = inputs
+    bf16 = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, matmul_dtype="bfloat16")
+    ref = _acc(params, x, a)
+    low = _acc(params, x, a, config=bf16)
+    assert low.dtype == jnp.float32
+    scale = float(jnp.max(jnp.abs(ref)))
+    assert float(jnp.max(jnp.abs(low - ref))) < 0.05 * scale

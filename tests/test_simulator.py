@@ -1,0 +1,117 @@
+"""One-step predictions and rollouts: loops, vmap, overflow handling, gradients."""
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dispgns.graph import GraphCapacity
+from dispgns.model import ModelConfig, init_params
+from dispgns.simulator import predict_acceleration, predict_position, rollout
+
+DATA = Path(__file__).parent / "data" / "features.npz"
+TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
+N = 40
+STEPS = 12
+CAP = GraphCapacity(512)
+
+
+@pytest.fixture(scope="module")
+def inputs():
+    with np.load(DATA) as d:
+        return jnp.asarray(d["positions"][:, :N], jnp.float32), jnp.asarray(d["radius"][:N], jnp.float32)
+
+
+@pytest.fixture(scope="module")
+def params():
+    # Small accelerations keep the untrained rollouts tame (no chaotic amplification).
+    norm = {"velocity_mean": jnp.zeros(2), "velocity_std": jnp.full((2,), 0.05),
+            "acceleration_mean": jnp.zeros(2), "acceleration_std": jnp.full((2,), 0.002)}
+    return init_params(jax.random.key(1), TINY, norm)
+
+
+def test_predict_position_is_the_euler_update(params, inputs):
+    x, a = inputs
+    acc = predict_acceleration(params, x, a, model_config=TINY, capacity=CAP)
+    nxt = predict_position(params, x, a, model_config=TINY, capacity=CAP)
+    np.testing.assert_allclose(np.asarray(nxt), np.asarray(x[-1] + (x[-1] - x[-2]) + acc), atol=1e-7)
+    assert float(jnp.max(jnp.abs(acc))) > 0
+
+
+def test_rollout_equals_a_loop_of_predict_position(params, inputs):
+    x, a = inputs
+    out = rollout(params, x, a, STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
+    assert out.shape == (STEPS, N, 2)
+    window, expected = x, []
+    for _ in range(STEPS):
+        nxt = predict_position(params, window, a, model_config=TINY, capacity=CAP)
+        expected.append(nxt)
+        window = jnp.concatenate([window[1:], nxt[None]])
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jnp.stack(expected)), rtol=0, atol=2e-6)
+
+
+def test_overflow_is_caught_and_recomputed(params, inputs):
+    x, a = inputs
+    big = rollout(params, x, a, STEPS, model_config=TINY, capacity=GraphCapacity(800), chunk_size=5)
+    small = rollout(params, x, a, STEPS, model_config=TINY, capacity=GraphCapacity(16), chunk_size=5)
+    assert np.all(np.isfinite(np.asarray(small)))
+    np.testing.assert_allclose(np.asarray(small), np.asarray(big), rtol=0, atol=2e-6)
+    # One step too: a too-small capacity is grown, never truncated.
+    np.testing.assert_allclose(
+        np.asarray(predict_position(params, x, a, model_config=TINY, capacity=16)),
+        np.asarray(big[0]), rtol=0, atol=2e-6)
+
+
+def test_traced_overflow_poisons_with_nan(params, inputs):
+    x, a = inputs
+    run = jax.jit(lambda p, x: rollout(p, x, a, 3, model_config=TINY, capacity=16))
+    out = run(params, x)
+    assert np.all(np.isnan(np.asarray(out)))
+    acc = jax.jit(lambda p, x: predict_acceleration(p, x, a, model_config=TINY, capacity=16))(params, x)
+    assert np.all(np.isnan(np.asarray(acc)))
+
+
+def test_vmap_over_padded_trajectories_equals_loop(params, inputs):
+    x, a = inputs
+    sizes = (N, N - 11)
+    second = x[:, 5:5 + sizes[1]] * jnp.array([-1.0, 1.0])  # another configuration (mirrored)
+    xs = jnp.stack([x, jnp.pad(second, ((0, 0), (0, N - sizes[1]), (0, 0)))])
+    radii = jnp.stack([a, jnp.pad(a[5:5 + sizes[1]], (0, N - sizes[1]))])
+    masks = jnp.stack([jnp.ones(N, bool), jnp.arange(N) < sizes[1]])
+    batched = jax.jit(jax.vmap(lambda x, r, m: rollout(params, x, r, STEPS, model_config=TINY, mask=m,
+                                                       capacity=CAP)))(xs, radii, masks)
+    for k, n in enumerate(sizes):
+        single = rollout(params, xs[k, :, :n], radii[k, :n], STEPS, model_config=TINY, capacity=CAP)
+        np.testing.assert_allclose(np.asarray(batched[k, :, :n]), np.asarray(single), rtol=0, atol=2e-6)
+    # Padding particles stay where they were.
+    np.testing.assert_array_equal(np.asarray(batched[1, :, sizes[1]:]),
+                                  np.broadcast_to(np.asarray(xs[1, -1, sizes[1]:]), (STEPS, N - sizes[1], 2)))
+
+
+def test_rollout_is_differentiable(params, inputs):
+    x, a = inputs
+    target = x[-1] + 0.01
+
+    def loss(p, radius):
+        out = rollout(p, x, radius, 4, model_config=TINY, capacity=CAP)
+        return jnp.mean((out[-1] - target) ** 2)
+
+    g_params, g_radius = jax.jit(jax.grad(loss, argnums=(0, 1)))(params, a)
+    leaves = jax.tree_util.tree_leaves(g_params["network"])
+    assert all(np.all(np.isfinite(np.asarray(l))) for l in leaves)
+    assert any(float(jnp.max(jnp.abs(l))) > 0 for l in leaves)
+    assert np.all(np.isfinite(np.asarray(g_radius))) and float(jnp.max(jnp.abs(g_radius))) > 0
+    # Normalisation statistics are data, not weights.
+    assert all(float(jnp.max(jnp.abs(l))) == 0 for l in jax.tree_util.tree_leaves(g_params["normalization"]))
+
+
+def test_bad_shapes_are_rejected(params, inputs):
+    x, a = inputs
+    with pytest.raises(ValueError, match="positions must have shape"):
+        rollout(params, x[1:], a, 2, model_config=TINY)
+    with pytest.raises(ValueError, match="radius must have shape"):
+        predict_position(params, x, a[1:], model_config=TINY)
+    with pytest.raises(ValueError, match="n_steps"):
+        rollout(params, x, a, 0, model_config=TINY)

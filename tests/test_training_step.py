@@ -1,0 +1,155 @@
+"""Noise, targets, normalisation, batches, the jitted step, and overfitting a tiny dataset."""
+
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dispgns.data.examples import BatchStream, example_index
+from dispgns.graph import GraphCapacity
+from dispgns.model import ModelConfig
+from dispgns.training import (TrainConfig, compute_normalization, create_train_state, learning_rate_schedule, loss_fn,
+                              random_walk_noise, target_acceleration, train_step)
+from dispgns.training.step import train_step_checked
+
+TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
+
+
+def _trajectory(seed, n=10, frames=14):
+    """Smooth deterministic motion of ``n`` particles on a jittered grid (normalised units)."""
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(n)))
+    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n] * 0.13 - 0.3
+    x0 = grid + rng.uniform(-0.02, 0.02, (n, 2))
+    v0 = rng.uniform(-2e-3, 2e-3, (n, 2))
+    phase = rng.uniform(0, 2 * np.pi, (n, 2))
+    t = np.arange(frames)[:, None, None]
+    position = x0 + v0 * t + 4e-3 * np.sin(0.4 * t + phase)
+    radius = rng.choice([0.03, 0.04, 0.05], n)
+    return SimpleNamespace(position=position.astype(np.float32), radius=radius.astype(np.float32))
+
+
+@pytest.fixture(scope="module")
+def trajectories():
+    return [_trajectory(0), _trajectory(1, n=8)]
+
+
+def test_random_walk_noise_statistics():
+    x = jnp.zeros((6, 4000, 2))
+    noise = random_walk_noise(jax.random.key(0), x, 5e-4, mask=jnp.arange(4000) < 3000)
+    np.testing.assert_array_equal(np.asarray(noise[0]), 0.0)
+    np.testing.assert_array_equal(np.asarray(noise[:, 3000:]), 0.0)
+    velocity_noise = np.diff(np.asarray(noise[:, :3000]), axis=0)
+    # Each velocity step adds noise_std / sqrt(C - 1): the last velocity carries noise_std.
+    assert abs(velocity_noise[-1].std() / 5e-4 - 1) < 0.05
+    assert abs(velocity_noise[0].std() / (5e-4 / np.sqrt(5)) - 1) < 0.05
+
+
+def test_target_is_the_noise_corrected_acceleration():
+    rng = np.random.default_rng(0)
+    clean = rng.normal(size=(7, 5, 2))
+    with jax.enable_x64(True):
+        noise = np.asarray(random_walk_noise(jax.random.key(1), jnp.asarray(clean[:6]), 0.1))
+        noisy = clean[:6] + noise
+        got = np.asarray(target_acceleration(jnp.asarray(clean[6]), jnp.asarray(clean[5]), jnp.asarray(noisy)))
+    assert noise.dtype == np.float64
+    paper = ((clean[6] + noise[-1]) - noisy[-1]) - (noisy[-1] - noisy[-2])
+    np.testing.assert_allclose(got, paper, atol=1e-12)
+
+
+def test_normalization_statistics(trajectories):
+    stats = compute_normalization(trajectories, noise_std=0.0)
+    v = np.concatenate([(np.diff(t.position, axis=0) / t.radius[None, :, None]).reshape(-1, 2) for t in trajectories])
+    acc = np.concatenate([(np.diff(t.position, 2, axis=0) / t.radius[None, :, None]).reshape(-1, 2)
+                          for t in trajectories])
+    np.testing.assert_allclose(stats["velocity_mean"], v.mean(0), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(stats["velocity_std"], v.std(0), rtol=1e-4)
+    np.testing.assert_allclose(stats["acceleration_std"], acc.std(0), rtol=1e-4)
+    noisy = compute_normalization(trajectories, noise_std=1e-3)
+    inv_a2 = np.mean(np.concatenate([1 / t.radius ** 2 for t in trajectories for _ in range(t.position.shape[0])]))
+    np.testing.assert_allclose(noisy["acceleration_std"] ** 2, stats["acceleration_std"] ** 2 + 1e-6 * inv_a2,
+                               rtol=1e-4)
+
+
+def test_learning_rate_schedule_has_a_floor():
+    lr = learning_rate_schedule(TrainConfig())
+    np.testing.assert_allclose(float(lr(0)), 1e-4, rtol=1e-6)
+    np.testing.assert_allclose(float(lr(200_000)), 1e-5, rtol=1e-5)
+    np.testing.assert_allclose(float(lr(2_000_000)), 1e-6, rtol=1e-6)
+    assert TrainConfig.from_dict(TrainConfig(noise_std=1e-3).to_dict()) == TrainConfig(noise_std=1e-3)
+    with pytest.raises(ValueError):
+        TrainConfig(min_learning_rate=1.0)
+
+
+def test_batches_are_deterministic_resumable_and_padded(trajectories):
+    assert len(example_index([14, 9], 7)) == 8 + 3
+    make = lambda seed: BatchStream(trajectories, input_sequence_length=6, batch_size=3, connectivity_radius=0.2,
+                                    seed=seed)
+    stream = make(0)
+    assert stream.num_examples == 2 * 8 and stream.batches_per_epoch == 5
+    first = [next(stream) for _ in range(7)]
+    state = stream.state_dict()
+    later = [next(stream) for _ in range(3)]
+    resumed = make(0)
+    resumed.load_state_dict(state)
+    for a, b in zip(later, [next(resumed) for _ in range(3)]):
+        np.testing.assert_array_equal(a.example, b.example)
+        np.testing.assert_array_equal(a.position, b.position)
+    # One epoch draws distinct examples; another seed gives another order.
+    ids = np.concatenate([stream.batch_examples(i) for i in range(stream.batches_per_epoch)])
+    assert len(set(ids.tolist())) == len(ids)
+    assert not np.array_equal(make(1).batch_examples(0), stream.batch_examples(0))
+    b = first[0]
+    assert b.position.shape == (3, 7, 16, 2) and b.mask.shape == (3, 16)
+    for k, (t, s) in enumerate(b.example):
+        n = trajectories[t].position.shape[1]
+        np.testing.assert_array_equal(b.position[k, :, :n], trajectories[t].position[s:s + 7])
+        assert b.mask[k].sum() == n and np.all(b.position[k, :, n:] == 0)
+        assert b.capacity.edges >= stream.pairs[stream.batch_examples(0)].max()
+
+
+def test_train_step_skips_on_overflow_and_checked_step_grows(trajectories):
+    stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2)
+    tc = TrainConfig(noise_std=1e-4)
+    state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories, noise_std=1e-4))
+    batch = stream.batch(0).with_capacity(GraphCapacity(8))
+    new, metrics = train_step(state, batch, jax.random.key(3))
+    assert bool(metrics["overflow"]) and int(new.step) == 0
+    assert all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(new.params),
+                                                     jax.tree_util.tree_leaves(state.params)))
+    new, metrics, used = train_step_checked(state, batch, jax.random.key(3), grow=stream.grow)
+    assert not bool(metrics["overflow"]) and int(new.step) == 1 and used.capacity.edges > 8
+    assert np.isfinite(float(metrics["loss"])) and np.isfinite(float(metrics["grad_norm"]))
+
+
+def test_tiny_model_overfits_a_tiny_dataset(trajectories):
+    tc = TrainConfig(noise_std=0.0, learning_rate=3e-3, min_learning_rate=3e-4, lr_decay_steps=400)
+    stream = BatchStream(trajectories[:1], input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=1)
+    state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories[:1]))
+    everything = stream.make_batch(np.arange(stream.num_examples))
+    evaluate = jax.jit(lambda p, b: loss_fn(p["network"], p["normalization"], b, jax.random.key(0), TINY, tc)[0])
+    before = float(evaluate(state.params, everything))
+    for i in range(600):
+        state, metrics = train_step(state, stream.batch(i), jax.random.fold_in(jax.random.key(1), i))
+    after = float(evaluate(state.params, everything))
+    assert int(state.step) == 600 and not bool(metrics["overflow"])
+    assert after < before / 100, (before, after)
+
+
+def test_pushforward_and_unstandardised_recipe(trajectories):
+    tc = TrainConfig(pushforward_steps=2, standardize=False)
+    state = create_train_state(jax.random.key(0), TINY, tc)
+    np.testing.assert_array_equal(np.asarray(state.params["normalization"]["velocity_std"]), 1.0)
+    stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2,
+                         pushforward_steps=2)
+    batch = stream.batch(0)
+    assert batch.position.shape[1] == 9
+    new, metrics = train_step(state, batch, jax.random.key(0))
+    assert int(new.step) == 1 and np.isfinite(float(metrics["loss"]))
+    with pytest.raises(ValueError, match="frames"):
+        train_step(create_train_state(jax.random.key(0), TINY, TrainConfig(standardize=False)), batch,
+                   jax.random.key(0))
+    with pytest.raises(ValueError, match="standardize"):
+        create_train_state(jax.random.key(0), TINY, TrainConfig())
