@@ -232,7 +232,7 @@ def test_batches_keep_trajectories_in_order(tmp_path, monkeypatch):
                                 progress=lambda *event: progress.append(event))
     assert sorted(shape[0] for shape in calls) == [1, 2, 2]
     assert progress[0] == ("place", 1, 5) and ("place", 5, 5) in progress
-    assert progress[-1] == ("simulate", 3 * 60, 3 * 60)
+    assert progress[-1] == ("simulate", 60, 60)
     _, splits = load_dataset(tmp_path / "out")
     for trajectories in splits.values():
         for t in trajectories:
@@ -262,6 +262,22 @@ def test_plan_batches():
     assert gen.plan_batches([44, 46, 38, 40, 40], 900) == [[2, 3, 4, 0, 1]]
     limited = gen.plan_batches(shuffled, 7500, batch_size=7)
     assert max(len(g) for g in limited) <= 7 and sorted(i for g in limited for i in g) == list(range(40))
+
+
+def test_worker_threads_keep_float64(tmp_path, monkeypatch):
+    fake = fake_simulate_batch()
+    seen = []
+
+    def recording(x0, *args, **kwargs):
+        seen.append((jax.config.jax_enable_x64, x0.dtype))
+        return fake(x0, *args, **kwargs)
+
+    monkeypatch.setattr(gen, "simulate_batch", recording)
+    with jax.enable_x64(True):
+        metadata = generate_dataset(tiny_spec().replace(precision="float64"), tmp_path / "out", seed=0,
+                                    batch_size=2)
+    assert metadata.precision == "float64"
+    assert seen == [(True, np.float64)] * 3
 
 
 def test_a_failing_batch_stops_the_others(tmp_path, monkeypatch):

@@ -23,7 +23,8 @@ def register(subparsers) -> None:
                         help="paper: the paper's 40 trajectories of 500 frames (default); tiny: 5 small "
                              "trajectories for tests and demos")
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to create")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="random seed in [0, 2^32) (default 0); every trajectory's key derives from it")
     parser.add_argument("--x64", action="store_true", help="simulate in float64 (slower; default float32)")
     parser.add_argument("--frames", type=int, metavar="T", help="frames per trajectory (default: the preset's)")
     for option, split in _COUNT_OPTIONS:
@@ -35,7 +36,8 @@ def register(subparsers) -> None:
                         help="radii in mm of one group of test_unseen trajectories; repeat for several "
                              "groups (the count is spread evenly over them)")
     parser.add_argument("--batch-size", type=int, metavar="B",
-                        help="trajectories simulated together (default: all at once, the fastest)")
+                        help="at most B trajectories simulated together, to save memory (default: no limit; "
+                             "groups of similar particle count are chosen automatically)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DIR")
     parser.set_defaults(func=run)
 

@@ -56,7 +56,8 @@ SPLIT_IDS = {"train": 0, "valid": 1, "test": 2, "test_unseen": 3}
 KEY_DERIVATION = "fold_in(fold_in(jax.random.PRNGKey(seed), split_ids[split]), index)"
 
 # progress(stage, done, total): stage "place" counts trajectories whose
-# initial state is drawn, stage "simulate" counts frames (over every batch).
+# initial state is drawn, stage "simulate" counts frames per trajectory
+# (averaged over the concurrently simulated groups).
 ProgressFn = Callable[[str, int, int], None]
 
 
@@ -477,13 +478,18 @@ def _simulate_groups(groups: list[list[int]], states: Sequence[InitialState], sp
     """Simulate every group (concurrently, up to ``lanes`` at a time); positions per trajectory in m."""
     counts = [int(s.position.shape[0]) for s in states]
     positions: list[np.ndarray | None] = [None] * len(states)
-    frames_total = spec.n_frames * len(groups)
     frames_done = [0] * len(groups)
     lock = threading.Lock()
     cancelled = threading.Event()
-    report("simulate", 0, frames_total)
+    # JAX configuration is thread-local: workers must see the caller's x64 setting.
+    x64 = bool(jax.config.jax_enable_x64)
+    report("simulate", 0, spec.n_frames)
 
     def run(index: int) -> None:
+        with jax.enable_x64(x64):
+            simulate_group(index)
+
+    def simulate_group(index: int) -> None:
         members = groups[index]
         n_pad = max(counts[i] for i in members)
         x0 = np.zeros((len(members), n_pad, spec.dim), dtype)
@@ -502,7 +508,8 @@ def _simulate_groups(groups: list[list[int]], states: Sequence[InitialState], sp
                 raise _Cancelled
             with lock:
                 frames_done[index] = done + 1
-                report("simulate", sum(frames_done), frames_total)
+                # Frames per trajectory, averaged over the groups.
+                report("simulate", sum(frames_done) // len(groups), spec.n_frames)
 
         xs = np.asarray(simulate_batch(x0, v0, radius, mask, spec.physics, n_frames=spec.n_frames,
                                        save_every=spec.save_every, progress=on_frames))
@@ -543,6 +550,14 @@ def generate_dataset(
     progress: ProgressFn | None = None,
 ) -> DatasetMetadata:
     """Generate the dataset ``spec`` describes into ``out_dir``; deterministic for a seed.
+
+    Initial states are drawn for every trajectory (one compilation), then the
+    trajectories are simulated in groups of similar particle count chosen by
+    :func:`plan_batches`, up to :data:`LANES` groups at once in threads, and
+    the dataset is written to a staging directory that is renamed into place.
+    The same seed and spec give the same files (on the same machine and
+    software: the float32 dynamics is chaotic, so different CPUs or XLA
+    versions diverge visibly over 500 frames).
 
     Args:
       spec: what to generate.
