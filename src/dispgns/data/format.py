@@ -80,9 +80,10 @@ class Trajectory:
       initial_position: ``(N, D)`` float64 centres in m the physics was
         started from, or ``None`` (imported data).
       initial_velocity: ``(N, D)`` float64 velocities in m/s, or ``None``.
+      particle_type: ``(N,)`` integer, zeros (``None``: made so).
       initial_radius: ``(N,)`` float64 radii in m the physics ran with (the
-        exact values from the radii list), or ``None``.
-      particle_type: ``(N,)`` integer, zeros.
+        exact values from the radii list), or ``None``. The three
+        ``initial_*`` fields are given together or not at all.
       attrs: provenance (JSON-compatible values), e.g. ``seed``, ``split``,
         ``index``, ``radii_m``.
     """
@@ -91,8 +92,8 @@ class Trajectory:
     radius: np.ndarray
     initial_position: np.ndarray | None = None
     initial_velocity: np.ndarray | None = None
-    initial_radius: np.ndarray | None = None
     particle_type: np.ndarray | None = None
+    initial_radius: np.ndarray | None = None
     attrs: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
