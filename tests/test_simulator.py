@@ -54,7 +54,7 @@ def test_rollout_equals_a_loop_of_predict_position(params, inputs):
 
 def test_overflow_is_caught_and_recomputed(params, inputs):
     x, a = inputs
-    big = rollout(params, x, a, STEPS, model_config=TINY, capacity=GraphCapacity(800), chunk_size=5)
+    big = rollout(params, x, a, STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
     small = rollout(params, x, a, STEPS, model_config=TINY, capacity=GraphCapacity(16), chunk_size=5)
     assert np.all(np.isfinite(np.asarray(small)))
     np.testing.assert_allclose(np.asarray(small), np.asarray(big), rtol=0, atol=2e-6)
@@ -83,7 +83,7 @@ def test_vmap_over_padded_trajectories_equals_loop(params, inputs):
     batched = jax.jit(jax.vmap(lambda x, r, m: rollout(params, x, r, STEPS, model_config=TINY, mask=m,
                                                        capacity=CAP)))(xs, radii, masks)
     for k, n in enumerate(sizes):
-        single = rollout(params, xs[k, :, :n], radii[k, :n], STEPS, model_config=TINY, capacity=CAP)
+        single = rollout(params, xs[k, :, :n], radii[k, :n], STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
         np.testing.assert_allclose(np.asarray(batched[k, :, :n]), np.asarray(single), rtol=0, atol=2e-6)
     # Padding particles stay where they were.
     np.testing.assert_array_equal(np.asarray(batched[1, :, sizes[1]:]),

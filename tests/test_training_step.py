@@ -15,6 +15,9 @@ from dispgns.training import (TrainConfig, compute_normalization, create_train_s
 from dispgns.training.step import train_step_checked
 
 TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
+# One training configuration and graph capacity for the tests that run steps (one compilation).
+FIT = TrainConfig(noise_std=0.0, learning_rate=3e-3, min_learning_rate=3e-4, lr_decay_steps=400)
+CAPACITY = GraphCapacity(192)
 
 
 def _trajectory(seed, n=10, frames=14):
@@ -112,27 +115,29 @@ def test_batches_are_deterministic_resumable_and_padded(trajectories):
 
 def test_train_step_skips_on_overflow_and_checked_step_grows(trajectories):
     stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2)
-    tc = TrainConfig(noise_std=1e-4)
-    state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories, noise_std=1e-4))
+    assert stream.capacity_for_pairs(8).edges > 8 and stream.grow(stream.batch(0)).capacity.edges > 8
+    state = create_train_state(jax.random.key(0), TINY, FIT, compute_normalization(trajectories))
     batch = stream.batch(0).with_capacity(GraphCapacity(8))
     new, metrics = train_step(state, batch, jax.random.key(3))
     assert bool(metrics["overflow"]) and int(new.step) == 0
     assert all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(new.params),
                                                      jax.tree_util.tree_leaves(state.params)))
-    new, metrics, used = train_step_checked(state, batch, jax.random.key(3), grow=stream.grow)
-    assert not bool(metrics["overflow"]) and int(new.step) == 1 and used.capacity.edges > 8
+    new, metrics, used = train_step_checked(state, batch, jax.random.key(3), grow=lambda b: b.with_capacity(CAPACITY))
+    assert not bool(metrics["overflow"]) and int(new.step) == 1 and used.capacity == CAPACITY
     assert np.isfinite(float(metrics["loss"])) and np.isfinite(float(metrics["grad_norm"]))
 
 
 def test_tiny_model_overfits_a_tiny_dataset(trajectories):
-    tc = TrainConfig(noise_std=0.0, learning_rate=3e-3, min_learning_rate=3e-4, lr_decay_steps=400)
+    tc = FIT
     stream = BatchStream(trajectories[:1], input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=1)
+    assert stream.pairs.max() < CAPACITY.edges
     state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories[:1]))
-    everything = stream.make_batch(np.arange(stream.num_examples))
+    everything = stream.make_batch(np.arange(stream.num_examples)).with_capacity(CAPACITY)
     evaluate = jax.jit(lambda p, b: loss_fn(p["network"], p["normalization"], b, jax.random.key(0), TINY, tc)[0])
     before = float(evaluate(state.params, everything))
     for i in range(600):
-        state, metrics = train_step(state, stream.batch(i), jax.random.fold_in(jax.random.key(1), i))
+        batch = stream.batch(i).with_capacity(CAPACITY)
+        state, metrics = train_step(state, batch, jax.random.fold_in(jax.random.key(1), i))
     after = float(evaluate(state.params, everything))
     assert int(state.step) == 600 and not bool(metrics["overflow"])
     assert after < before / 100, (before, after)

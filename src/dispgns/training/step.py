@@ -32,7 +32,7 @@ from jax import lax
 
 from dispgns.data.examples import Batch
 from dispgns.model import ModelConfig, identity_normalization, init_params
-from dispgns.simulator import one_step, build_graph, network_output, sanitize
+from dispgns.simulator import build_graph, network_output_batch, one_step, sanitize
 from dispgns.training.noise import random_walk_noise, target_acceleration
 
 
@@ -154,46 +154,51 @@ def create_train_state(key: jax.Array, model_config: ModelConfig, train_config: 
                       model_config=model_config, train_config=train_config)
 
 
-def _example_loss(network, normalization, position, radius, mask, key, capacity, model_config: ModelConfig,
-                  train_config: TrainConfig):
-    """Sum of squared errors over the real particles of one example, their count, and overflow."""
+def _prepare_example(params, position, radius, mask, key, capacity, model_config: ModelConfig,
+                     train_config: TrainConfig):
+    """Inputs, graph and standardised target of one example (no gradient flows through here).
+
+    Returns ``(inputs (C, N, D) sanitised, radius (N,) sanitised, graph, target (N, D), overflow)``.
+    """
     c = model_config.input_sequence_length
     k = train_config.pushforward_steps
-    params = {"network": network, "normalization": normalization}
     inputs = position[:c]
     window = inputs + random_walk_noise(key, inputs, train_config.noise_std, mask)
     overflow = jnp.zeros((), bool)
     if k:
-        frozen = jax.tree_util.tree_map(lax.stop_gradient, params)
-
         def advance(carry, _):
             window, overflow = carry
-            _, nxt, step_overflow = one_step(frozen, window, radius, mask, capacity, model_config)
-            window = jnp.concatenate([window[1:], lax.stop_gradient(nxt)[None]], axis=0)
+            _, nxt, step_overflow = one_step(params, window, radius, mask, capacity, model_config)
+            window = jnp.concatenate([window[1:], nxt[None]], axis=0)
             return (window, overflow | step_overflow), None
 
         (window, overflow), _ = lax.scan(advance, (window, overflow), None, length=k)
     x, a = sanitize(window, radius, mask, model_config)
     graph = build_graph(x[-1], mask, capacity, model_config)
-    output = network_output(params, x, a, graph, model_config=model_config)
     target = target_acceleration(position[c + k], position[c + k - 1], window) / a[:, None]
-    target = (target - normalization["acceleration_mean"]) / normalization["acceleration_std"]
-    error = jnp.sum((output - lax.stop_gradient(target)) ** 2, axis=-1)
-    error = jnp.where(mask, error, 0.0)
-    return jnp.sum(error), jnp.sum(mask, dtype=jnp.float32), overflow | graph.overflow
+    norm = params["normalization"]
+    target = (target - norm["acceleration_mean"]) / norm["acceleration_std"]
+    return x, a, graph, target, overflow | graph.overflow
 
 
 def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: ModelConfig,
             train_config: TrainConfig):
     """Mean over the real particles of the batch of the squared error summed over D.
 
+    The ``B`` examples are evaluated as one disjoint graph
+    (:func:`dispgns.simulator.network_output_batch`).
+
     Returns ``(loss, {"overflow": bool})``.
     """
     keys = jax.random.split(key, batch.position.shape[0])
-    sq, count, overflow = jax.vmap(
-        lambda x, a, m, k: _example_loss(network, normalization, x, a, m, k, batch.capacity, model_config,
-                                         train_config))(batch.position, batch.radius, batch.mask, keys)
-    loss = jnp.sum(sq) / jnp.maximum(jnp.sum(count), 1.0)
+    frozen = lax.stop_gradient({"network": network, "normalization": normalization})
+    x, a, graphs, target, overflow = jax.vmap(
+        lambda x, a, m, k: _prepare_example(frozen, x, a, m, k, batch.capacity, model_config, train_config))(
+            batch.position, batch.radius, batch.mask, keys)
+    params = {"network": network, "normalization": normalization}
+    output = network_output_batch(params, x, a, graphs, model_config=model_config)
+    error = jnp.where(batch.mask, jnp.sum((output - target) ** 2, axis=-1), 0.0)
+    loss = jnp.sum(error) / jnp.maximum(jnp.sum(batch.mask, dtype=jnp.float32), 1.0)
     return loss, {"overflow": jnp.any(overflow)}
 
 

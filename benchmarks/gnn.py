@@ -1,0 +1,223 @@
+"""Speed of the learned simulator: training step, rollout step, FLOPs and achieved GFLOP/s.
+
+Inputs of the size the paper's authors' code was timed on (~220 particles,
+~2,400 edges per example including self-loops): the paper's initial-state
+protocol with radii {2.25, 3.25, 3.75, 4.75} mm and 220 particles, simulated
+for a while so the packing is realistic.
+
+    python benchmarks/gnn.py            # float32 and bfloat16-matmul variants
+    python benchmarks/gnn.py --quick    # float32 only, no full 494-step rollout
+
+Prints a few human-readable lines and ends with one JSON line. Timings are
+wall-clock medians after compilation; CPU time of the process is reported
+too, because on a shared machine the wall time also measures the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import dispgns
+from dispgns.data.examples import BatchStream
+from dispgns.graph import capacity_for, host_count_pairs
+from dispgns.model import MLP, ModelConfig, count_parameters
+from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
+from dispgns.simulator import _scan_steps_jit
+from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
+
+RADII_MM = (2.25, 3.25, 3.75, 4.75)
+
+
+def timed(fn, repeats: int):
+    """Median wall and process-CPU seconds of ``fn()`` (blocked), after one warm-up call."""
+    jax.block_until_ready(fn())
+    walls, cpus = [], []
+    for _ in range(repeats):
+        w, c = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn())
+        cpus.append(time.process_time() - c)
+        walls.append(time.perf_counter() - w)
+    return float(np.median(walls)), float(np.median(cpus))
+
+
+def machine_info() -> dict:
+    cpu = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "load_average_1min": os.getloadavg()[0],
+            "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
+            "xla_flags": os.environ.get("XLA_FLAGS", "")}
+
+
+def trajectories(n_particles: int, frames: int, seeds=(0, 1)):
+    """Paper-protocol packings simulated for ``frames`` frames, in normalised units."""
+    cfg = PhysicsConfig()
+    out = []
+    for seed in seeds:
+        state = sample_initial_state(jax.random.key(seed), [r * 1e-3 for r in RADII_MM], cfg,
+                                     n_particles=n_particles, start_height=-0.03)
+        x = np.asarray(simulate(state.position, state.velocity, state.radius, cfg, n_frames=frames))
+        out.append(dispgns.Trajectory(position=(x / cfg.box_half_size).astype(np.float32),
+                                      radius=(np.asarray(state.radius) / cfg.box_half_size).astype(np.float32)))
+    return out
+
+
+def matmul_rate(m: int, k: int, n: int, dtype=jnp.float32) -> float:
+    a = jax.random.normal(jax.random.key(0), (m, k)).astype(dtype)
+    b = jax.random.normal(jax.random.key(1), (k, n)).astype(dtype)
+    f = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32))
+    wall, _ = timed(lambda: f(a, b), 20)
+    return 2.0 * m * k * n / wall / 1e9
+
+
+def network_flops(config: ModelConfig, nodes: int, edges: int) -> float:
+    """Forward FLOPs (multiply-adds x 2) of the network's dense layers on one graph."""
+    L, H, hl = config.latent_size, config.hidden_size, config.hidden_layers
+
+    def mlp(rows, fan_in, out):
+        sizes = [fan_in] + [H] * hl + [out]
+        return 2.0 * rows * sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
+
+    total = mlp(nodes, config.node_feature_size, L) + mlp(edges, config.edge_feature_size, L)
+    per_block = (2.0 * nodes * L * 2 * H  # node parts of the message MLP's first layer, once per node
+                 + 2.0 * edges * L * H + mlp(edges, H, L) - 2.0 * edges * H * H  # the rest of the message MLP
+                 + mlp(nodes, 2 * L, L) + mlp(nodes, L, L) + mlp(edges, L, L))
+    return total + config.message_passing_steps * per_block + mlp(nodes, L, config.dim)
+
+
+def xla_flops(compiled) -> float | None:
+    try:
+        cost = compiled.cost_analysis()
+        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+        value = float(cost.get("flops", 0.0))
+        return value if value > 0 else None
+    except Exception:  # cost analysis is best-effort on CPU
+        return None
+
+
+def edge_mlp_rate(edges: int, dtype: str) -> float:
+    """GFLOP/s of a stack of per-edge MLPs (forward + backward), the bulk of a training step."""
+    config = ModelConfig(matmul_dtype=dtype)
+    mlp = MLP(128, (128, 128), 128, matmul_dtype=None if dtype == "float32" else jnp.bfloat16)
+    x = jax.random.normal(jax.random.key(0), (edges, 128))
+    params = mlp.init(jax.random.key(1), x)
+    depth = 4
+
+    def loss(p, x):
+        for _ in range(depth):
+            x = x + mlp.apply(p, x)
+        return jnp.sum(x * x)
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    wall, _ = timed(lambda: grad(params, x), 10)
+    del config
+    return 3.0 * depth * 3 * 2.0 * edges * 128 * 128 / wall / 1e9
+
+
+def run(dtype: str, trajs, args, report: dict):
+    model_config = ModelConfig(matmul_dtype=dtype)
+    train_config = TrainConfig()
+    norm = compute_normalization(trajs, noise_std=train_config.noise_std)
+    state = create_train_state(jax.random.key(0), model_config, train_config, norm)
+    stream = BatchStream(trajs, input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=0)
+    # Batches from the end of the trajectories (the settled, densest packings).
+    late = np.flatnonzero(stream.index.start >= stream.index.start.max() - 4)
+    ids = [late[0], late[-1]]
+    batch = stream.make_batch(ids)
+    pairs = stream.pairs[ids]
+    key = jax.random.key(0)
+
+    compiled = train_step.lower(state, batch, key).compile()
+    flops_xla = xla_flops(compiled)
+    train_wall, train_cpu = timed(lambda: compiled(state, batch, key), args.repeats)
+    nodes = batch.node_budget
+    slots = batch.capacity.edges + nodes
+    flops_train = 3.0 * network_flops(model_config, 2 * (nodes + 1), 2 * slots)
+
+    traj = trajs[0]
+    start = traj.position.shape[0] - 6
+    window = jnp.asarray(traj.position[start - 100:start - 94])
+    radius = jnp.asarray(traj.radius)
+    mask = jnp.ones(radius.shape, bool)
+    capacity = capacity_for(traj.position[start - 100:], connectivity_radius=0.2, margin=0.05)
+    params = state.params
+    steps = args.rollout_steps
+    chunk = jax.jit(lambda p, w: _scan_steps_jit(p, w, radius, mask, length=steps, capacity=capacity,
+                                                 model_config=model_config)[1])
+    roll_wall, roll_cpu = timed(lambda: chunk(params, window), 3)
+    rollout_step = roll_wall / steps
+    n_real = int(radius.shape[0])
+    flops_rollout = network_flops(model_config, n_real, capacity.edges + n_real)
+
+    full = None
+    if args.full:
+        x0 = jnp.asarray(traj.position[:6])
+        dispgns.rollout(params, x0, radius, 494, model_config=model_config)  # compile
+        t = time.perf_counter()
+        jax.block_until_ready(dispgns.rollout(params, x0, radius, 494, model_config=model_config))
+        full = time.perf_counter() - t
+
+    tag = "" if dtype == "float32" else "_bf16"
+    report.update({
+        f"train_step_ms{tag}": 1e3 * train_wall,
+        f"train_step_cpu_ms{tag}": 1e3 * train_cpu,
+        f"rollout_step_ms{tag}": 1e3 * rollout_step,
+        f"rollout_step_cpu_ms{tag}": 1e3 * roll_cpu / steps,
+        f"rollout_494_steps_s{tag}": full,
+        f"train_gflop{tag}": flops_train / 1e9,
+        f"train_gflop_xla{tag}": None if flops_xla is None else flops_xla / 1e9,
+        f"train_gflops_per_s{tag}": flops_train / train_wall / 1e9,
+        f"rollout_gflop_per_step{tag}": flops_rollout / 1e9,
+        f"rollout_gflops_per_s{tag}": flops_rollout / rollout_step / 1e9,
+        f"edge_mlp_gflops_per_s{tag}": edge_mlp_rate(2 * int(np.mean(pairs) + nodes), dtype),
+    })
+    if dtype == "float32":
+        report.update({
+            "edges_per_example": [int(p) + n for p, n in zip(pairs, batch.mask.sum(axis=1))],
+            "edge_slots_per_example": int(slots),
+            "particles_per_example": [int(n) for n in batch.mask.sum(axis=1)],
+            "parameters": count_parameters(params["network"]),
+        })
+    print(f"[{dtype}] train step {1e3 * train_wall:.1f} ms (cpu {1e3 * train_cpu:.0f} ms), "
+          f"{flops_train / 1e9:.1f} GFLOP -> {flops_train / train_wall / 1e9:.0f} GFLOP/s; rollout "
+          f"{1e3 * rollout_step:.1f} ms/step; full 494-step rollout {full if full is None else round(full, 2)} s",
+          flush=True)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="float32 only, no full 494-step rollout")
+    parser.add_argument("--repeats", type=int, default=20, help="timed training steps (median)")
+    parser.add_argument("--rollout-steps", type=int, default=50, help="steps per timed rollout chunk")
+    args = parser.parse_args()
+    args.full = not args.quick
+
+    report = {"machine": machine_info()}
+    trajs = trajectories(220, 110)
+    report["pairs_last_frame"] = [int(host_count_pairs(t.position[-1], connectivity_radius=0.2)) for t in trajs]
+    report["matmul_gflops_per_s"] = matmul_rate(2048, 2048, 2048)
+    report["matmul_4800x128x128_gflops_per_s"] = matmul_rate(4800, 128, 128)
+    report["matmul_4800x128x128_bf16_gflops_per_s"] = matmul_rate(4800, 128, 128, jnp.bfloat16)
+    print(f"matmul 2048^2 {report['matmul_gflops_per_s']:.0f} GFLOP/s, 4800x128x128 "
+          f"{report['matmul_4800x128x128_gflops_per_s']:.0f} GFLOP/s (bf16 "
+          f"{report['matmul_4800x128x128_bf16_gflops_per_s']:.0f})", flush=True)
+    for dtype in (("float32",) if args.quick else ("float32", "bfloat16")):
+        run(dtype, trajs, args, report)
+    report["edge_mlp_fraction_of_matmul"] = report["edge_mlp_gflops_per_s"] / report["matmul_4800x128x128_gflops_per_s"]
+    report["machine"]["load_average_1min_end"] = os.getloadavg()[0]
+    print(json.dumps(report, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+if __name__ == "__main__":
+    main()
