@@ -93,23 +93,76 @@ def interaction_force(
       ``(Q, D)`` forces in N.
     """
     n, dim = position.shape
+    if neighbor_idx is not None:
+        table = neighbor_table(position, radius, mask)
+        return neighbor_force(query, query_index, neighbor_idx[jnp.minimum(query_index, n - 1)], table, config)
     safe_index = jnp.minimum(query_index, n - 1)
     a_i = radius[safe_index][:, None]
     query_valid = (query_index < n) & mask[safe_index]
-    # One (Q, N) or (Q, M) array per axis: XLA on CPU vectorises these far
-    # better than (Q, N, D) arrays reduced over a minor axis of size 2.
-    if neighbor_idx is None:
-        others = jnp.arange(n)[None, :]
-        displacement = [query[:, d][:, None] - position[:, d][None, :] for d in range(dim)]
-        a_j = radius[None, :]
-        valid = mask[None, :] & (others != query_index[:, None])
-    else:
-        others = neighbor_idx[safe_index]
-        safe_others = jnp.minimum(others, n - 1)
-        displacement = [query[:, d][:, None] - position[:, d][safe_others] for d in range(dim)]
-        a_j = radius[safe_others]
-        valid = (others < n) & mask[safe_others] & (others != query_index[:, None])
-    valid = valid & query_valid[:, None]
+    # One (Q, N) array per axis: XLA on CPU vectorises these far better than
+    # (Q, N, D) arrays reduced over a minor axis of size 2.
+    displacement = [query[:, d][:, None] - position[:, d][None, :] for d in range(dim)]
+    valid = mask[None, :] & (jnp.arange(n)[None, :] != query_index[:, None]) & query_valid[:, None]
+    return _sum_pair_forces(displacement, valid, a_i, radius[None, :], config)
+
+
+def neighbor_table(position: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+    """Per-particle data that a neighbour-list force gathers, packed as ``(N + 1, D + 2)``.
+
+    Row ``j < N`` holds ``x_j`` (m, ``D`` columns), ``a_j`` (m) and 1.0 for a
+    real particle or 0.0 for padding; row ``N`` is the empty slot that jax-md
+    neighbour lists point to (0.0 flag, radius 1 m so that masked arithmetic
+    stays finite). Built once per step and shared by every force evaluation
+    of that step.
+    """
+    dtype = position.dtype
+    rows = jnp.concatenate([position, radius[:, None], mask[:, None].astype(dtype)], axis=1)
+    empty = jnp.zeros((1, rows.shape[1]), dtype).at[0, -2].set(1.0)
+    return jnp.concatenate([rows, empty], axis=0)
+
+
+def neighbor_force(
+    query: jnp.ndarray,
+    query_index: jnp.ndarray,
+    others: jnp.ndarray,
+    table: jnp.ndarray,
+    config: PhysicsConfig,
+) -> jnp.ndarray:
+    """Pair force in N on particle ``query_index[q]`` at ``query[q]`` from its listed neighbours.
+
+    The same force as :func:`interaction_force` with a neighbour list, for
+    callers that evaluate it several times per step on one list.
+
+    Args:
+      query: ``(Q, D)`` trial positions in m.
+      query_index: ``(Q,)`` int; rows with an index ``>= N`` get zero force.
+      others: ``(Q, M)`` int, the neighbour-list row of each query's particle
+        (``N`` marks an empty slot).
+      table: ``(N + 1, D + 2)`` from :func:`neighbor_table`.
+      config: physics parameters (``cutoff`` in m).
+
+    Returns:
+      ``(Q, D)`` forces in N.
+    """
+    n = table.shape[0] - 1
+    dim = table.shape[1] - 2
+    query_row = table[jnp.minimum(query_index, n)]
+    # One gather of whole rows replaces separate position, radius and mask
+    # gathers and the clamping of empty slots (they point at the padding row).
+    neighbor = table[others]
+    displacement = [query[:, d][:, None] - neighbor[..., d] for d in range(dim)]
+    valid = (neighbor[..., dim + 1] > 0) & (others != query_index[:, None]) & (query_row[:, dim + 1] > 0)[:, None]
+    return _sum_pair_forces(displacement, valid, query_row[:, dim][:, None], neighbor[..., dim], config)
+
+
+def _sum_pair_forces(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray,
+                     config: PhysicsConfig) -> jnp.ndarray:
+    """Sum of pair forces over the last axis: ``(Q, D)`` in N.
+
+    ``displacement`` is a list of ``D`` arrays ``(Q, K)`` of ``query - x_j``
+    in m; ``valid`` ``(Q, K)`` marks pairs that interact before the cut-off
+    is applied; radii broadcast against ``(Q, K)``.
+    """
     r2 = sum(component * component for component in displacement)
     if config.cutoff is not None:
         valid = valid & (r2 < config.cutoff**2)

@@ -17,6 +17,7 @@ Units are SI: positions in m, velocities in m/s, radii in m, time in s.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from typing import Callable
 
@@ -25,10 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax_md import dataclasses as md_dataclasses
-from jax_md import partition, space
+from jax_md import partition
 
 from dispgns.physics.config import PhysicsConfig
-from dispgns.physics.forces import external_force, interaction_force, particle_mass
+from dispgns.physics.forces import external_force, interaction_force, neighbor_force, neighbor_table, particle_mass
 from dispgns.physics.walls import resolve_walls
 
 
@@ -80,50 +81,188 @@ def _park_padding(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfi
     return jnp.where(mask[:, None], position, parked)
 
 
+# Neighbour capacities (cell slots and list slots) are this factor above the
+# occupancy seen at allocation, as jax-md does.
+_CAPACITY_MULTIPLIER = 1.25
+
+
+def _cell_grid(config: PhysicsConfig) -> tuple[int, float]:
+    """Cells per side and cell side in m of the grid over ``[0, 2L]^D``.
+
+    Cells are at least the list radius ``cutoff + neighbor_skin`` wide, so
+    every pair within it lies in the same or adjacent cells.
+    """
+    box = 2.0 * config.box_half_size
+    reach = config.cutoff + config.neighbor_skin
+    per_side = max(1, int(box // reach))
+    while per_side > 1 and box / per_side < reach:
+        per_side -= 1
+    return per_side, box / per_side
+
+
+def _flat_cell(coordinate: jnp.ndarray, per_side: int) -> jnp.ndarray:
+    """Row-major cell number of integer cell coordinates ``(..., D)``."""
+    flat = coordinate[..., 0]
+    for d in range(1, coordinate.shape[-1]):
+        flat = flat * per_side + coordinate[..., d]
+    return flat
+
+
+def _cells(position: jnp.ndarray, config: PhysicsConfig):
+    """Integer cell coordinates ``(N, D)`` (clipped into the grid) and ``parked`` ``(N,)``.
+
+    Parked particles (padding, placed far outside the box) lie more than a
+    cell outside the grid: they get no cell and no neighbours.
+    """
+    per_side, size = _cell_grid(config)
+    coordinate = jnp.floor(position / size).astype(jnp.int32)
+    parked = jnp.any((coordinate < -1) | (coordinate > per_side), axis=-1)
+    return jnp.clip(coordinate, 0, per_side - 1), parked
+
+
+@functools.partial(jax.jit, static_argnames=("config", "cell_capacity", "max_neighbors"))
+def _build_neighbors(position, error, config: PhysicsConfig, cell_capacity: int, max_neighbors: int):
+    """Dense neighbour list of ``position`` ``(N, D)`` (m, in ``[0, 2L]^D``) from a cell list.
+
+    Returns ``idx`` ``(N, max_neighbors)`` (``N`` marks empty slots), the
+    most neighbours any particle has, and ``error`` with the overflow bits
+    set when a cell held more than ``cell_capacity`` particles or a particle
+    more than ``max_neighbors`` neighbours. Shaped for XLA on CPU, where
+    sorts, cumulative sums and distances reduced over a minor axis of size D
+    are slow: the cell table is filled by ``C`` rounds of one scatter per
+    particle instead of an argsort, distances are per axis, and list slots
+    come from population counts instead of a cumsum over the candidates.
+    ``C = cell_capacity``; the order inside a list is deterministic (by cell,
+    then by particle index).
+    """
+    n, dim = position.shape
+    per_side, _ = _cell_grid(config)
+    n_cells = per_side**dim
+    coordinate, parked = _cells(position, config)
+    cell = _flat_cell(coordinate, per_side)
+
+    # Cell table (n_cells + 1, C): round s puts the smallest particle not yet
+    # placed of every cell into slot s; the extra row stays empty (id N).
+    ids = jnp.arange(n, dtype=jnp.int32)
+    size = (n_cells + 1) * cell_capacity
+
+    def place(s, carry):
+        table, placed = carry
+        target = jnp.where(placed, size, cell * cell_capacity + s)
+        table = table.at[target].min(ids, mode="drop")
+        return table, placed | (table[jnp.minimum(target, size - 1)] == ids)
+
+    table, placed = lax.fori_loop(0, cell_capacity, place, (jnp.full((size,), n, jnp.int32), parked))
+    table = table.reshape(n_cells + 1, cell_capacity)
+
+    # Candidates: the particles of the 3^D cells around each particle's own
+    # (one cell when the grid has a single cell per side).
+    steps = (0,) if per_side == 1 else (-1, 0, 1)
+    offsets = np.array(list(itertools.product(steps, repeat=dim)), np.int32)
+    around = coordinate[:, None, :] + offsets[None]
+    inside = jnp.all((around >= 0) & (around < per_side), axis=-1) & ~parked[:, None]
+    candidate = table[jnp.where(inside, _flat_cell(around, per_side), n_cells)].reshape(n, -1)
+    padded = jnp.concatenate([position, jnp.zeros((1, dim), position.dtype)])
+    other = padded[candidate]
+    r2 = sum((position[:, d][:, None] - other[..., d]) ** 2 for d in range(dim))
+    reach = config.cutoff + config.neighbor_skin
+    valid = (candidate < n) & (candidate != ids[:, None]) & (r2 < reach**2)
+
+    # Slot of each valid candidate = number of valid candidates before it.
+    # Per group of <= 31 candidates the flags form one int32 whose population
+    # count below a bit gives the rank inside the group.
+    width = min(cell_capacity, 31)
+    groups = -(-valid.shape[1] // width)
+    flags = jnp.pad(valid, ((0, 0), (0, groups * width - valid.shape[1]))).reshape(n, groups, width)
+    bit = jnp.arange(width, dtype=jnp.int32)
+    bits = jnp.sum(jnp.where(flags, jnp.left_shift(1, bit), 0), axis=-1)
+    in_group = lax.population_count(bits)
+    before_group = jnp.cumsum(in_group, axis=1) - in_group
+    below = lax.population_count(bits[..., None] & (jnp.left_shift(1, bit) - 1))
+    slot = (before_group[..., None] + below).reshape(n, -1)[:, : valid.shape[1]]
+    count = before_group[:, -1] + in_group[:, -1]
+    keep = valid & (slot < max_neighbors)
+    target = jnp.where(keep, ids[:, None] * max_neighbors + slot, n * max_neighbors)
+    idx = jnp.full((n * max_neighbors,), n, jnp.int32).at[target.ravel()].set(candidate.ravel(), mode="drop")
+
+    pec = partition.PartitionErrorCode
+    error = error.update(pec.CELL_LIST_OVERFLOW, ~jnp.all(placed))
+    error = error.update(pec.NEIGHBOR_LIST_OVERFLOW, jnp.max(count, initial=0) > max_neighbors)
+    return idx.reshape(n, max_neighbors), jnp.max(count, initial=0), error
+
+
 @functools.lru_cache(maxsize=None)
 def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFns:
-    """jax-md cell-list neighbour function for ``config.cutoff`` (cached per config).
+    """Cell-list neighbour functions for ``config.cutoff`` (cached per config).
 
-    The list radius is ``cutoff + neighbor_skin``. Its ``update`` always
-    rebuilds; :func:`update_neighbors` decides when a rebuild is due (once
-    some particle moved by more than a quarter of the skin, which leaves room
-    for wall contact points within one Euler displacement of a particle).
-    Positions are passed shifted by ``+L`` so that they lie in ``[0, 2L]``
-    (the cell list hashes non-negative coordinates).
+    Returns jax-md ``NeighborListFns``: ``allocate(position, extra_capacity=0)``
+    (outside ``jit``; sizes the cell and list capacities from the occupancy
+    it sees, times 1.25, plus ``extra_capacity``) and ``update(position,
+    neighbors)``, which always rebuilds at the list's capacities and sets
+    ``did_buffer_overflow`` when they are exceeded. The lists are jax-md
+    dense ``NeighborList`` s of radius ``cutoff + neighbor_skin``;
+    :func:`update_neighbors` decides when a rebuild is due (from the
+    distances moved since the last build and the particles' speeds).
+    Positions are passed shifted by ``+L`` so that they lie in ``[0, 2L]``;
+    padding particles parked outside the box get no neighbours.
     """
     if config.cutoff is None:
         raise ValueError("neighbour lists need PhysicsConfig.cutoff to be set (got None = all pairs)")
-    displacement, _ = space.free()
-    # Padding particles are parked beyond 3L; the cell grid only needs to cover
-    # the box, jax-md wraps outside cells and the distance test rejects them.
-    box = 2.0 * config.box_half_size
-    return partition.neighbor_list(
-        displacement,
-        box,
-        r_cutoff=config.cutoff + config.neighbor_skin,
-        dr_threshold=0.0,
-        capacity_multiplier=1.25,
-        format=partition.NeighborListFormat.Dense,
-    )
+    per_side, cell_size = _cell_grid(config)
+
+    def make(position, idx, error, cell_capacity, max_neighbors):
+        return partition.NeighborList(
+            idx, position, error, cell_capacity, max_neighbors, partition.NeighborListFormat.Dense, cell_size,
+            None, update_fn)
+
+    def update_fn(position, neighbors, **unused):
+        cell_capacity, max_neighbors = neighbors.cell_list_capacity, neighbors.max_occupancy
+        idx, _, error = _build_neighbors(position, neighbors.error, config, cell_capacity, max_neighbors)
+        return make(position, idx, error, cell_capacity, max_neighbors)
+
+    def allocate_fn(position, extra_capacity: int = 0, **unused):
+        position = jnp.asarray(position)
+        n = position.shape[0]
+        coordinate, parked = (np.asarray(a) for a in _cells(position, config))
+        cells = coordinate[~parked] @ (per_side ** np.arange(dim - 1, -1, -1))
+        occupancy = int(np.bincount(cells).max(initial=0))
+        cell_capacity = max(1, int(occupancy * _CAPACITY_MULTIPLIER)) + extra_capacity
+        candidates = (1 if per_side == 1 else 3**dim) * cell_capacity
+        error = partition.PartitionError(jnp.zeros((), jnp.uint8))
+        idx, most, error = _build_neighbors(position, error, config, cell_capacity, candidates)
+        max_neighbors = int(int(most) * _CAPACITY_MULTIPLIER + extra_capacity)
+        max_neighbors = max(1, min(max_neighbors, candidates, n - 1))
+        return make(position, idx[:, :max_neighbors], error, cell_capacity, max_neighbors)
+
+    return partition.NeighborListFns(allocate_fn, update_fn)
 
 
-@functools.lru_cache(maxsize=None)
-def _cell_list_fn_for(config: PhysicsConfig, cell_size: float) -> partition.CellListFns:
-    return partition.cell_list(2.0 * config.box_half_size, cell_size, 1.25)
+def update_neighbors(neighbors: partition.NeighborList, position: jnp.ndarray, config: PhysicsConfig,
+                     velocity: jnp.ndarray | None = None):
+    """Rebuild ``neighbors`` when the coming step could need a pair it lacks.
 
-
-def update_neighbors(neighbors: partition.NeighborList, position: jnp.ndarray, config: PhysicsConfig):
-    """Rebuild ``neighbors`` if any particle moved more than ``neighbor_skin / 4``.
+    A list built at radius ``cutoff + skin`` holds every pair the step needs
+    while ``max_i (d_i + e_i) + max_j d_j <= skin``, where ``d`` is the
+    distance moved since the build and ``e_i`` how far particle ``i``'s trial
+    positions (wall contact points) lie from it. Contact points lie on the
+    step's path, so with ``velocity`` given, ``e_i`` is bounded by
+    ``2 dt |v_i|`` (twice the Euler displacement leaves room for a second,
+    corner contact after a reflection); without it, every particle may
+    move ``skin / 4`` and ``e`` gets the other half of the skin.
 
     Works on one list (``position (N, D)``) or a stack of lists
     (``position (B, N, D)``); for a stack the decision is taken once for the
     whole batch, so the rebuild is skipped, not merely masked, on most steps.
     Positions are in m, in the box frame (the shift into the cell-list frame
-    happens here).
+    happens here); ``velocity``, like ``position``, in m/s.
     """
     shifted = position + config.box_half_size
-    moved = jnp.sum((shifted - neighbors.reference_position) ** 2, axis=-1)
-    due = jnp.max(moved) > (0.25 * config.neighbor_skin) ** 2
+    moved = jnp.sqrt(jnp.sum((shifted - neighbors.reference_position) ** 2, axis=-1))
+    if velocity is None:
+        due = jnp.max(moved) > 0.25 * config.neighbor_skin
+    else:
+        reach = 2.0 * config.dt * jnp.sqrt(jnp.sum(velocity**2, axis=-1))
+        due = jnp.max(moved + reach) + jnp.max(moved) > config.neighbor_skin
     if position.ndim == 2:
         rebuild = lambda: neighbors.update(shifted)
     else:
@@ -151,7 +290,8 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         ``config.dt`` seconds. With ``config.cutoff`` set, pass a jax-md
         neighbour list for linear cost: allocate it outside ``jit`` with
         ``neighbor_fn_for(config, D).allocate(position + L)`` and refresh it
-        before every step with :func:`update_neighbors`, checking
+        before every step with :func:`update_neighbors` (passing the
+        velocities makes rebuilds rarer), checking
         ``did_buffer_overflow`` afterwards. Without one, pairs are still cut
         off at ``config.cutoff`` but found by the all-pairs ``N x N`` path.
     """
@@ -183,12 +323,21 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
     def step_fn(state: SimState, neighbors: partition.NeighborList | None = None) -> SimState:
         x, v, a, mask = state.position, state.velocity, state.radius, state.mask
         n = x.shape[0]
-        neighbor_idx = None if neighbors is None else neighbors.idx
+        if neighbors is None:
+            def force_at(query, query_index):
+                return interaction_force(query, query_index, x, a, mask, config)
 
-        def force_at(query, query_index):
-            return interaction_force(query, query_index, x, a, mask, config, neighbor_idx)
+            start_force = force_at(x, jnp.arange(n))
+        else:
+            # The gathered table is shared by the start-of-step force and the
+            # wall contact points; the start force reads the list rows in order.
+            table = neighbor_table(x, a, mask)
 
-        start_force = force_at(x, jnp.arange(n))
+            def force_at(query, query_index):
+                rows = neighbors.idx[jnp.minimum(query_index, n - 1)]
+                return neighbor_force(query, query_index, rows, table, config)
+
+            start_force = neighbor_force(x, jnp.arange(n), neighbors.idx, table, config)
         inv_mass = (1.0 / state.mass)[:, None]
         drag = (config.drag * a)[:, None]
         euler_velocity = v + config.dt * inv_mass * (state.external - drag * v + start_force)
@@ -216,13 +365,21 @@ def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames:
 
     Returns ``((state, neighbors), (xs, vs))`` with frames stacked on axis 0.
     """
+    if batched and state.position.shape[0] == 1:
+        # A batch of one runs unbatched: XLA's CPU gathers with a batch
+        # dimension (neighbour lists under vmap) are about 3x slower.
+        squeeze = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[0], tree)
+        expand = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[None], tree)
+        (state, neighbors), (xs, vs) = _advance_frames(
+            squeeze(state), squeeze(neighbors), config, n_frames, save_every, collision_capacity, False)
+        return (expand(state), expand(neighbors)), (xs[:, None], vs[:, None])
     _, step_fn = euler_integrator(config, collision_capacity=collision_capacity)
     step = jax.vmap(step_fn) if batched else step_fn
 
     def one_step(_, carry):
         state, neighbors = carry
         if neighbors is not None:
-            neighbors = update_neighbors(neighbors, state.position, config)
+            neighbors = update_neighbors(neighbors, state.position, config, state.velocity)
         return step(state, neighbors), neighbors
 
     def frame(carry, _):
@@ -382,13 +539,12 @@ def _allocate_neighbors(position: jnp.ndarray, mask: jnp.ndarray, config: Physic
         _park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])
     ]
     lists = [neighbor_fn.allocate(x, extra_capacity=extra_capacity) for x in shifted]
-    template = max(lists, key=lambda nbrs: (nbrs.max_occupancy, nbrs.cell_list_capacity or 0))
-    if template.cell_list_fn is not None:
-        # jax-md makes new cell-list closures on every allocation; they are
-        # static pytree fields, so reuse one per config or every call recompiles.
-        template = md_dataclasses.replace(template, cell_list_fn=_cell_list_fn_for(config, template.cell_size))
-    updated = [neighbor_fn.update(x, template) for x in shifted]
-    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *updated)
+    capacity = lambda nbrs: (nbrs.cell_list_capacity, nbrs.max_occupancy)
+    common = tuple(max(values) for values in zip(*map(capacity, lists)))
+    template = md_dataclasses.replace(lists[0], cell_list_capacity=common[0], max_occupancy=common[1])
+    # Only lists allocated below the common capacities are rebuilt.
+    lists = [nbrs if capacity(nbrs) == common else neighbor_fn.update(x, template) for x, nbrs in zip(shifted, lists)]
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *lists)
 
 
 def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacity, chunk_frames,

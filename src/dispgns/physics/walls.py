@@ -15,6 +15,7 @@ import math
 from typing import Callable, NamedTuple
 
 import jax.numpy as jnp
+from jax import lax
 
 from dispgns.physics.config import PhysicsConfig
 
@@ -81,7 +82,6 @@ def resolve_walls(
         instead of ``N x N``). ``None``: all N, no overflow possible.
     """
     n, dim = position.shape
-    dtype = position.dtype
     lower_all = -config.box_half_size + radius
     upper_all = config.box_half_size - radius
     above = (euler_position > upper_all[:, None]) & mask[:, None]
@@ -90,15 +90,36 @@ def resolve_walls(
     wall_hits = jnp.stack([jnp.sum(above, axis=0), jnp.sum(below, axis=0)], axis=-1).reshape(2 * dim)
     corner_events = jnp.sum(jnp.sum(above | below, axis=-1) >= 2)
 
+    exact = capacity is None or capacity >= n
+    overflow = jnp.zeros((), bool) if exact else jnp.sum(crossed_any) > capacity
+
+    def collide():
+        return _collide(position, velocity, euler_position, euler_velocity, start_force, radius, mass, external,
+                        lower_all, upper_all, crossed_any, config, force_at, None if exact else capacity)
+
+    # Most steps have no wall crossing at all: the cond then skips the gathers
+    # and contact-point forces (under vmap it becomes a select of both).
+    new_position, new_velocity = lax.cond(jnp.any(crossed_any), collide, lambda: (euler_position, euler_velocity))
+    return WallResult(new_position, new_velocity, wall_hits, corner_events, overflow)
+
+
+def _collide(position, velocity, euler_position, euler_velocity, start_force, radius, mass, external,
+             lower_all, upper_all, crossed_any, config: PhysicsConfig, force_at: ForceAtFn, capacity: int | None):
+    """End-of-step ``(position, velocity)``, ``(N, D)``, with every crossing particle's collision applied.
+
+    Arguments as in :func:`resolve_walls`; ``lower_all``/``upper_all`` ``(N,)``
+    are the admissible centre range in m, ``crossed_any`` ``(N,)`` flags the
+    crossing particles and ``capacity`` is ``None`` (all rows) or ``< N``.
+    """
+    n, dim = position.shape
+    dtype = position.dtype
     # Work on the colliding particles only: gather them (up to `capacity`),
     # run every wall event on those rows, scatter the results back once.
-    if capacity is None or capacity >= n:
+    if capacity is None:
         index = jnp.arange(n)
-        overflow = jnp.zeros((), bool)
         gather = lambda array: array
     else:
         (index,) = jnp.nonzero(crossed_any, size=capacity, fill_value=n)
-        overflow = jnp.sum(crossed_any) > capacity
         safe_index = jnp.minimum(index, n - 1)
         gather = lambda array: array[safe_index]
     active = gather(crossed_any) & (index < n)
@@ -142,7 +163,15 @@ def resolve_walls(
         other_forces = [e - drag * w for e, w in zip(ext, start_velocity)]
         before = [w + t_contact * inv_mass * (o + f) for w, o, f in zip(start_velocity, other_forces, force_at_start)]
         reflected = [sqrt_restitution * jnp.where(flag, -b, b) for flag, b in zip(on_axis, before)]
-        force_at_contact = columns(force_at(jnp.stack(contact, axis=-1), jnp.where(active, index, n)))
+
+        def contact_force():
+            return columns(force_at(jnp.stack(contact, axis=-1), jnp.where(active, index, n)))
+
+        if event == 0:
+            force_at_contact = contact_force()
+        else:
+            # Only corner crossings reach a second wall: usually none, so skip the force.
+            force_at_contact = lax.cond(jnp.any(active), contact_force, lambda: [jnp.zeros_like(c) for c in contact])
         after_v = [r + t_rest * inv_mass * (o + f) for r, o, f in zip(reflected, other_forces, force_at_contact)]
         after_x = [c + t_rest * r for c, r in zip(contact, reflected)]
 
@@ -157,11 +186,11 @@ def resolve_walls(
     result_x = [jnp.clip(c, lower, upper) for c in result_x]
     new_x, new_v = jnp.stack(result_x, axis=-1), jnp.stack(result_v, axis=-1)
     collided = gather(crossed_any) & (index < n)
-    if capacity is None or capacity >= n:
+    if capacity is None:
         new_position = jnp.where(collided[:, None], new_x, euler_position)
         new_velocity = jnp.where(collided[:, None], new_v, euler_velocity)
     else:
         scatter_index = jnp.where(collided, index, n)
         new_position = euler_position.at[scatter_index].set(new_x, mode="drop")
         new_velocity = euler_velocity.at[scatter_index].set(new_v, mode="drop")
-    return WallResult(new_position, new_velocity, wall_hits, corner_events, overflow)
+    return new_position, new_velocity
