@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from dispgns.graph import DEFAULT_BOUNDS, Bounds, GraphCapacity, host_count_pairs, host_max_cell_occupancy
+from dispgns.graph import (CELL_LIST_MIN_PARTICLES, DEFAULT_BOUNDS, Bounds, GraphCapacity, host_count_pairs,
+                           host_max_cell_occupancy)
 
 
 @struct.dataclass
@@ -114,15 +115,18 @@ class BatchStream:
       capacity_margin, capacity_extra: head-room of a capacity over the most
         pairs found in the example's graph frames: ``pairs * (1 + margin) +
         extra`` (the training noise moves pairs across the radius).
-      use_cell_list: build training graphs with the cell list (default: no,
-        all-pairs candidates, faster below a few hundred particles).
+      use_cell_list: build training graphs with the jax-md cell list; ``None``
+        (default) uses it when the node budget reaches
+        ``dispgns.graph.CELL_LIST_MIN_PARTICLES``, where it is faster than
+        testing all pairs. Its per-cell capacity is the fullest cell of any
+        frame plus head-room.
       bounds: the box (only for the cell grid).
     """
 
     def __init__(self, trajectories: Sequence[Any], *, input_sequence_length: int, batch_size: int,
                  connectivity_radius: float, seed: int = 0, pushforward_steps: int = 0, shuffle: bool = True,
                  node_budgets: Sequence[int] | None = None, num_capacity_levels: int = 4,
-                 capacity_margin: float = 0.03, capacity_extra: int = 64, use_cell_list: bool = False,
+                 capacity_margin: float = 0.03, capacity_extra: int = 64, use_cell_list: bool | None = None,
                  bounds: Bounds = DEFAULT_BOUNDS):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -169,6 +173,8 @@ class BatchStream:
         quantiles = np.quantile(self.pairs, np.arange(1, num_capacity_levels + 1) / num_capacity_levels)
         self.capacity_levels = sorted({self._required(q) for q in quantiles} | {self._required(self.pairs.max())})
         self.cell_capacity = None
+        if use_cell_list is None:
+            use_cell_list = self.node_budgets[-1] >= CELL_LIST_MIN_PARTICLES
         if use_cell_list:
             occupancy = max(host_max_cell_occupancy(x, connectivity_radius=self.connectivity_radius, bounds=bounds)
                             for x in self.positions)
