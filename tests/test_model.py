@@ -129,3 +129,44 @@ def test_bfloat16_matmuls_stay_close(params, inputs):
     assert low.dtype == jnp.float32
     scale = float(jnp.max(jnp.abs(ref)))
     assert float(jnp.max(jnp.abs(low - ref))) < 0.05 * scale
+
+
+def test_layer_norm_matches_flax():
+    import flax.linen as nn
+
+    from dispgns.model import LayerNorm
+
+    x = jax.random.normal(jax.random.key(0), (30, 16)) * 3 + 1
+    variables = {"params": {"scale": jax.random.normal(jax.random.key(1), (16,)),
+                            "bias": jax.random.normal(jax.random.key(2), (16,))}}
+    w = jax.random.normal(jax.random.key(3), (30, 16))
+    ours = lambda v, x: jnp.sum(LayerNorm(1e-5).apply(v, x) * w)
+    flax_ln = lambda v, x: jnp.sum(nn.LayerNorm(epsilon=1e-5).apply(v, x) * w)
+    np.testing.assert_allclose(float(ours(variables, x)), float(flax_ln(variables, x)), rtol=1e-5)
+    for a, b in zip(jax.tree_util.tree_leaves(jax.grad(ours, argnums=(0, 1))(variables, x)),
+                    jax.tree_util.tree_leaves(jax.grad(flax_ln, argnums=(0, 1))(variables, x))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
+def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
+    from dispgns.graph import GraphCapacity
+    from dispgns.simulator import build_graph, network_output, network_output_batch, sanitize
+
+    x, a = inputs
+    n2 = N - 9
+    mask = jnp.stack([jnp.ones(N, bool), jnp.arange(N) < n2])
+    xs = jnp.stack([x, x[:, ::-1] * 0.9])
+    xs, radii = jax.vmap(lambda x, r, m: sanitize(x, r, m, TINY))(xs, jnp.stack([a, a[::-1]]), mask)
+    cap = GraphCapacity(CAPACITY)
+    graphs = jax.vmap(lambda x, m: build_graph(x[-1], m, cap, TINY))(xs, mask)
+
+    @jax.jit
+    def both(p, xs, radii, graphs):
+        merged = network_output_batch(p, xs, radii, graphs, model_config=TINY)
+        separate = jnp.stack([network_output(p, xs[k], radii[k], jax.tree_util.tree_map(lambda g: g[k], graphs),
+                                             model_config=TINY) for k in range(2)])
+        return merged, separate
+
+    merged, separate = both(params, xs, radii, graphs)
+    np.testing.assert_allclose(np.asarray(merged[0]), np.asarray(separate[0]), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(merged[1, :n2]), np.asarray(separate[1, :n2]), rtol=1e-5, atol=1e-6)

@@ -153,7 +153,7 @@ class Linear(nn.Module):
         return self.dot(x, self.kernel) + self.bias
 
 
-@jax.custom_vjp
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
 def _layer_norm(x, scale, bias, epsilon):
     return _layer_norm_fwd(x, scale, bias, epsilon)[0]
 
@@ -166,13 +166,13 @@ def _layer_norm_fwd(x, scale, bias, epsilon):
     return normed * scale + bias, (normed, inv, scale)
 
 
-def _layer_norm_bwd(residuals, dy):
+def _layer_norm_bwd(epsilon, residuals, dy):
     normed, inv, scale = residuals
     dbias = jnp.sum(dy, axis=tuple(range(dy.ndim - 1)))
     dscale = jnp.sum(dy * normed, axis=tuple(range(dy.ndim - 1)))
     g = dy * scale
     dx = inv * (g - jnp.mean(g, axis=-1, keepdims=True) - normed * jnp.mean(g * normed, axis=-1, keepdims=True))
-    return dx, dscale, dbias, None
+    return dx, dscale, dbias
 
 
 _layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)

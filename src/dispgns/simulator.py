@@ -17,11 +17,14 @@ Graph capacity. Every function takes ``capacity`` (a
 :class:`~dispgns.graph.GraphCapacity` or an int, the number of ordered pairs
 ``s != r`` the graph can hold). Called with concrete arrays, ``None`` sizes it
 from the data and an overflow grows it and recomputes; nothing is ever
-dropped. Under a JAX transformation (``jit``, ``vmap``, ``grad`` with respect
-to the positions or radii) sizes cannot change: ``capacity`` is then used as
-given (``None`` means all ``N (N - 1)`` pairs: exact but slow) and any
-overflow poisons the affected outputs with NaN instead of silently dropping
-edges.
+dropped. Under a JAX transformation (``jit``, ``vmap``, ``grad``) sizes
+cannot change: ``capacity`` is then used as given; ``None`` sizes it from the
+positions if they are concrete (e.g. only ``params`` traced) and otherwise
+means all ``N (N - 1)`` pairs (exact but slow). Any overflow poisons the
+affected outputs with NaN instead of silently dropping edges. The default
+candidate search (all pairs or jax-md cell list) is chosen by particle count
+(:data:`dispgns.graph.CELL_LIST_MIN_PARTICLES`); an explicit
+``GraphCapacity(edges, cell)`` chooses it.
 
 Padding particles (``mask == False``) never influence real ones; their
 outputs are zero accelerations and unchanged positions.

@@ -181,6 +181,14 @@ class BatchStream:
             self.cell_capacity = occupancy + max(2, occupancy // 4)
         self.position = 0
 
+    @classmethod
+    def for_training(cls, trajectories, model_config, train_config, **kwargs) -> "BatchStream":
+        """The stream a run with these configs needs (``C``, ``B``, radius, seed, pushforward, box)."""
+        return cls(trajectories, input_sequence_length=model_config.input_sequence_length,
+                   batch_size=train_config.batch_size, connectivity_radius=model_config.connectivity_radius,
+                   seed=train_config.seed, pushforward_steps=train_config.pushforward_steps,
+                   bounds=model_config.bounds, **kwargs)
+
     # -- sizes ---------------------------------------------------------------------------------
     @property
     def num_examples(self) -> int:
