@@ -257,13 +257,14 @@ _scan_steps_jit = jax.jit(_scan_steps, static_argnames=("length", "capacity", "m
 
 
 def rollout(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
-            capacity=None, chunk_size: int = 100):
+            capacity=None, chunk_size: int = 50):
     """Autoregressive rollout of ``n_steps`` frames (``lax.scan``, graph rebuilt at every step).
 
     With concrete arrays the steps run in compiled chunks of about
-    ``chunk_size``; after each chunk the overflow flag is checked and, if
-    set, the capacity is grown and the chunk recomputed, so the result is
-    exactly that of a graph without any size limit. Under ``jit``/``vmap``/
+    ``chunk_size``; after each chunk the overflow flags are checked and, if
+    one is set, the capacity is grown and the steps from the first
+    overflowing one on are recomputed, so the result is exactly that of a
+    graph without any size limit. Under ``jit``/``vmap``/
     ``grad`` the whole rollout is one scan with the given ``capacity`` (when
     ``None``: sized from concrete initial positions with 50 % head-room, or
     all ``N (N - 1)`` pairs if they are traced too); every frame from the
@@ -279,7 +280,8 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
       model_config: static :class:`ModelConfig`.
       mask: optional ``(N,)`` bool, ``False`` for padding particles.
       capacity: optional graph capacity.
-      chunk_size: static, steps per compiled chunk in the concrete path.
+      chunk_size: static, steps per compiled chunk in the concrete path (an overflow
+        discards at most the rest of one chunk).
 
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
@@ -334,6 +336,6 @@ def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -
     n = position.shape[0]
     grown = graph_lib.grow_capacity(capacity, n, factor=1.25)
     fit = graph_lib.capacity_for(position, mask, connectivity_radius=model_config.connectivity_radius,
-                                 bounds=model_config.bounds, use_cell_list=capacity.cell is not None, margin=0.1)
+                                 bounds=model_config.bounds, use_cell_list=capacity.cell is not None, margin=0.2)
     cell = None if capacity.cell is None else max(grown.cell, fit.cell)
     return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)
