@@ -13,6 +13,11 @@ from jax import lax
 
 from dispgns.physics.config import PhysicsConfig
 
+# Up to this many neighbour slots (Q x M), neighbour forces loop over slots;
+# above, they use (Q, M) arrays. Measured on a 2-core x86 CPU: the loop is
+# ~1.5x faster at 2,000 x 22 slots, even at 20,000 x 22, slower at 50,000 x 22.
+_SLOT_LOOP_MAX_PAIRS = 2**16
+
 
 def particle_volume(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp.ndarray:
     """Volume in m^3 of each particle; ``radius`` is ``(N,)`` in m.
@@ -147,21 +152,36 @@ def neighbor_force(
     n = table.shape[0] - 1
     dim = table.shape[1] - 2
     query_row = table[jnp.minimum(query_index, n)]
+    query_valid = query_row[:, dim + 1] > 0
+    a_i = query_row[:, dim]
+    if others.size <= _SLOT_LOOP_MAX_PAIRS:
+        # Small lists: one slot at a time on (Q,) vectors. XLA fuses each
+        # slot's gather and arithmetic, which beats (Q, M) arrays while the
+        # data sits in cache; for large Q x M the (Q, M) form below is faster.
+        force = [jnp.zeros_like(a_i) for _ in range(dim)]
+        for slot in range(others.shape[1]):
+            other = others[:, slot]
+            neighbor = table[other]
+            displacement = [query[:, d] - neighbor[:, d] for d in range(dim)]
+            valid = (neighbor[:, dim + 1] > 0) & (other != query_index) & query_valid
+            coeff = _pair_coefficient(displacement, valid, a_i, neighbor[:, dim], config)
+            force = [f + coeff * component for f, component in zip(force, displacement)]
+        return jnp.stack(force, axis=-1)
     # One gather of whole rows replaces separate position, radius and mask
     # gathers and the clamping of empty slots (they point at the padding row).
     neighbor = table[others]
     displacement = [query[:, d][:, None] - neighbor[..., d] for d in range(dim)]
-    valid = (neighbor[..., dim + 1] > 0) & (others != query_index[:, None]) & (query_row[:, dim + 1] > 0)[:, None]
-    return _sum_pair_forces(displacement, valid, query_row[:, dim][:, None], neighbor[..., dim], config)
+    valid = (neighbor[..., dim + 1] > 0) & (others != query_index[:, None]) & query_valid[:, None]
+    return _sum_pair_forces(displacement, valid, a_i[:, None], neighbor[..., dim], config)
 
 
-def _sum_pair_forces(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray,
-                     config: PhysicsConfig) -> jnp.ndarray:
-    """Sum of pair forces over the last axis: ``(Q, D)`` in N.
+def _pair_coefficient(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray,
+                      config: PhysicsConfig) -> jnp.ndarray:
+    """``-U'(r) / r`` (N/m) of every pair, 0 for pairs that do not interact.
 
-    ``displacement`` is a list of ``D`` arrays ``(Q, K)`` of ``query - x_j``
-    in m; ``valid`` ``(Q, K)`` marks pairs that interact before the cut-off
-    is applied; radii broadcast against ``(Q, K)``.
+    ``displacement`` is a list of ``D`` arrays of ``query - x_j`` in m;
+    ``valid`` marks pairs that interact before the cut-off is applied; all
+    arrays, radii included, broadcast to one shape.
     """
     r2 = sum(component * component for component in displacement)
     if config.cutoff is not None:
@@ -169,6 +189,14 @@ def _sum_pair_forces(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a
     # Masked pairs get r2 = 1 so that no inf/nan enters the (discarded) branch,
     # which keeps gradients finite as well.
     r2_safe = jnp.where(valid & (r2 > 0), r2, 1.0)
-    coeff = pair_force_over_distance(r2_safe, a_i, a_j, config)
-    coeff = jnp.where(valid, coeff, 0.0)
+    return jnp.where(valid, pair_force_over_distance(r2_safe, a_i, a_j, config), 0.0)
+
+
+def _sum_pair_forces(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray,
+                     config: PhysicsConfig) -> jnp.ndarray:
+    """Sum of pair forces over the last axis: ``(Q, D)`` in N.
+
+    Arguments as in :func:`_pair_coefficient`, with ``(Q, K)`` pair arrays.
+    """
+    coeff = _pair_coefficient(displacement, valid, a_i, a_j, config)
     return jnp.stack([jnp.sum(coeff * component, axis=1) for component in displacement], axis=-1)
