@@ -38,7 +38,7 @@ import numpy as np
 from jax import lax
 
 from dispgns.features import edge_feature_size, node_feature_size
-from dispgns.graph import DEFAULT_BOUNDS, Bounds, as_bounds
+from dispgns.graph import Bounds, as_bounds
 
 _ACTIVATIONS: dict[str, Callable] = {
     "relu": jax.nn.relu,
@@ -66,7 +66,8 @@ class ModelConfig:
       connectivity_radius: graph radius in normalised box units (0.2 = 4 x
         the largest training radius).
       boundary_clip: wall distances are clipped to ``[-clip, clip]`` radii (4).
-      bounds: the box ``((lo, hi),) * D`` in normalised units (``[-1, 1]^D``).
+      bounds: the box ``((lo, hi),) * D`` in normalised units (``None``:
+        ``[-1, 1]^D``).
       layer_norm_epsilon: LayerNorm epsilon (PyTorch's 1e-5).
       matmul_dtype: ``"float32"`` (default, exact) or ``"bfloat16"``: matmul
         inputs rounded to bfloat16 with float32 accumulation (what TPUs do by
@@ -82,7 +83,7 @@ class ModelConfig:
     activation: str = "relu"
     connectivity_radius: float = 0.2
     boundary_clip: float = 4.0
-    bounds: Bounds = DEFAULT_BOUNDS
+    bounds: Bounds | None = None
     layer_norm_epsilon: float = 1e-5
     matmul_dtype: str = "float32"
 
@@ -104,7 +105,8 @@ class ModelConfig:
             raise ValueError("ModelConfig.connectivity_radius and boundary_clip must be > 0, got "
                              f"{self.connectivity_radius!r} and {self.boundary_clip!r}")
         # Normalise lists (e.g. from YAML/JSON) into the hashable tuple form.
-        object.__setattr__(self, "bounds", as_bounds(self.bounds, self.dim))
+        bounds = ((-1.0, 1.0),) * int(self.dim) if self.bounds is None else self.bounds
+        object.__setattr__(self, "bounds", as_bounds(bounds, self.dim))
 
     @property
     def node_feature_size(self) -> int:

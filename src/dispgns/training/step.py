@@ -53,6 +53,16 @@ class TrainConfig:
       pushforward_steps: unrolled steps without gradient before the loss (0).
       num_steps: training steps of a full run (2 million in the paper).
       seed: seed of the parameter initialisation, data order and noise.
+      log_every: steps between log records (mean loss since the last one).
+      validate_every: steps between validations (0: never).
+      checkpoint_every: steps between checkpoints (0: only at the end and
+        on interruption).
+      keep_checkpoints: how many of the latest checkpoints to keep (the best
+        by validation is kept apart).
+      validation_examples: one-step examples of the valid split scored
+        (evenly spaced over it, without noise).
+      validation_trajectories: valid trajectories rolled out.
+      validation_rollout_frames: frames of each validation rollout.
     """
 
     noise_std: float = 5e-4
@@ -65,13 +75,24 @@ class TrainConfig:
     pushforward_steps: int = 0
     num_steps: int = 2_000_000
     seed: int = 0
+    log_every: int = 100
+    validate_every: int = 2000
+    checkpoint_every: int = 2000
+    keep_checkpoints: int = 3
+    validation_examples: int = 64
+    validation_trajectories: int = 3
+    validation_rollout_frames: int = 50
 
     def __post_init__(self):
         if not (self.noise_std >= 0):
             raise ValueError(f"TrainConfig.noise_std must be >= 0, got {self.noise_std!r}")
-        for name in ("batch_size", "num_steps"):
+        for name in ("batch_size", "num_steps", "log_every", "keep_checkpoints"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
+        for name in ("validate_every", "checkpoint_every", "validation_examples", "validation_trajectories",
+                     "validation_rollout_frames"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
+                raise ValueError(f"TrainConfig.{name} must be an integer >= 0, got {getattr(self, name)!r}")
         if int(self.pushforward_steps) != self.pushforward_steps or self.pushforward_steps < 0:
             raise ValueError(f"TrainConfig.pushforward_steps must be an integer >= 0, got {self.pushforward_steps!r}")
         for name in ("learning_rate", "lr_decay", "lr_decay_steps"):

@@ -1,0 +1,308 @@
+"""``dispgns train``: train a learned simulator on a dataset directory, with checkpoints and exact resume."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+from dispgns.cli import CLIError
+
+# Training fields that may change when a run is resumed: they decide how long
+# and how often, not what is learned.
+RESUMABLE_TRAIN_FIELDS = ("num_steps", "log_every", "validate_every", "checkpoint_every", "keep_checkpoints",
+                          "validation_examples", "validation_trajectories", "validation_rollout_frames")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "train",
+        help="train a learned simulator on a dataset",
+        description="Train the graph network simulator on DATA's train split, validating on its valid split. "
+                    "Writes RUN/config.json, RUN/log.jsonl, orbax checkpoints (RUN/checkpoints, RUN/best), "
+                    "the final model (RUN/model) and RUN/training_curve.png. Ctrl-C checkpoints and stops; "
+                    "--resume continues exactly where the run stopped.",
+    )
+    parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory (from dispgns generate)")
+    parser.add_argument("--out", required=True, metavar="RUN", help="run directory to create (or resume)")
+    parser.add_argument("--config", metavar="YAML",
+                        help="YAML file with 'model:' and 'train:' sections (ModelConfig / TrainConfig fields)")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="overrides",
+                        help="override one field, e.g. --set model.latent_size=64 --set train.noise_std=3e-4 "
+                             "(repeatable; applied after --config)")
+    parser.add_argument("--steps", type=int, metavar="N", help="train up to step N (train.num_steps)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in RUN from its latest checkpoint")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing run in RUN")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+def _read_yaml(path: str) -> dict[str, Any]:
+    import yaml
+
+    try:
+        text = Path(path).read_text()
+    except OSError as error:
+        raise CLIError(f"{path}: cannot be read ({error.strerror or error})") from None
+    try:
+        values = yaml.safe_load(text) or {}
+    except yaml.YAMLError as error:
+        raise CLIError(f"{path}: not valid YAML ({error})") from None
+    if not isinstance(values, dict):
+        raise CLIError(f"{path}: expected a mapping with 'model:' and/or 'train:' sections, got "
+                       f"{type(values).__name__}")
+    unknown = sorted(set(values) - {"model", "train"})
+    if unknown:
+        raise CLIError(f"{path}: unknown section(s) {unknown}, expected 'model' and/or 'train'")
+    for section in ("model", "train"):
+        if not isinstance(values.get(section, {}), dict):
+            raise CLIError(f"{path}: section {section!r} must be a mapping of field: value")
+    return {section: dict(values.get(section) or {}) for section in ("model", "train")}
+
+
+def _apply_overrides(values: dict[str, dict[str, Any]], overrides: list[str]) -> None:
+    import yaml
+
+    for text in overrides:
+        name, sep, raw = text.partition("=")
+        section, dot, field = name.strip().partition(".")
+        if not sep or not dot or section not in ("model", "train") or not field:
+            raise CLIError(f"--set {text!r}: expected SECTION.FIELD=VALUE with SECTION 'model' or 'train', "
+                           f"e.g. --set model.latent_size=64")
+        try:
+            values[section][field] = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            values[section][field] = raw
+
+
+def resolve_configs(args: argparse.Namespace, default_connectivity_radius: float | None):
+    """``(ModelConfig, TrainConfig, explicit)`` from defaults, ``--config``, ``--set`` and ``--steps``.
+
+    ``explicit`` holds the fields the user set (``{"model": {...}, "train": {...}}``).
+    """
+    from dispgns.model import ModelConfig
+    from dispgns.training import TrainConfig
+
+    values = _read_yaml(args.config) if args.config else {"model": {}, "train": {}}
+    _apply_overrides(values, args.overrides)
+    if args.steps is not None:
+        values["train"]["num_steps"] = args.steps
+    explicit = {section: dict(fields) for section, fields in values.items()}
+    model_values = dict(values["model"])
+    if "connectivity_radius" not in model_values and default_connectivity_radius is not None:
+        model_values["connectivity_radius"] = float(default_connectivity_radius)
+    where = args.config or "--set"
+    try:
+        model_config = ModelConfig.from_dict(model_values)
+    except (TypeError, ValueError) as error:
+        raise CLIError(f"{where}: invalid model config: {error}") from None
+    try:
+        train_config = TrainConfig.from_dict(values["train"])
+    except (TypeError, ValueError) as error:
+        raise CLIError(f"{where}: invalid train config: {error}") from None
+    return model_config, train_config, explicit
+
+
+def _differences(stored, requested, fields) -> list[str]:
+    return [f"{name}: checkpoint {getattr(stored, name)!r}, requested {getattr(requested, name)!r}"
+            for name in fields if getattr(stored, name) != getattr(requested, name)]
+
+
+def resumed_configs(stored_model, stored_train, explicit: dict[str, dict[str, Any]], run_dir: Path):
+    """The configs of a resumed run: the stored ones, with only the resumable training fields changed."""
+    model_changes = {k: v for k, v in explicit["model"].items()}
+    if model_changes:
+        try:
+            requested = dataclasses.replace(stored_model, **model_changes)
+        except (TypeError, ValueError) as error:
+            raise CLIError(f"invalid model config: {error}") from None
+        diff = _differences(stored_model, requested, [f.name for f in dataclasses.fields(stored_model)])
+        if diff:
+            raise CLIError(f"{run_dir / 'config.json'}: the requested model does not match the checkpoint ("
+                           + "; ".join(diff) + "); a run resumes with the model it was started with")
+    try:
+        train = dataclasses.replace(stored_train, **explicit["train"])
+    except (TypeError, ValueError) as error:
+        raise CLIError(f"invalid train config: {error}") from None
+    fixed = [f.name for f in dataclasses.fields(stored_train) if f.name not in RESUMABLE_TRAIN_FIELDS]
+    diff = _differences(stored_train, train, fixed)
+    if diff:
+        raise CLIError(f"{run_dir / 'config.json'}: the requested training config does not match the checkpoint ("
+                       + "; ".join(diff) + f"); on resume only {', '.join(RESUMABLE_TRAIN_FIELDS)} may change")
+    return stored_model, train
+
+
+# ----------------------------------------------------------------------------- output directory
+
+
+def _check_fresh_run_dir(run_dir: Path, *, overwrite: bool) -> None:
+    from dispgns.training.checkpoint import CONFIG_FILE
+
+    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+        if not overwrite:
+            raise CLIError(f"{run_dir} exists and is not empty; use --resume to continue the run in it, "
+                           f"--overwrite to replace it, or another --out")
+        if not (run_dir / CONFIG_FILE).is_file():
+            raise CLIError(f"refusing to overwrite {run_dir}: it is not a dispgns run ({CONFIG_FILE} not found)")
+    parent = next((p for p in run_dir.absolute().parents if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise CLIError(f"cannot create the run directory {run_dir}: {parent} is not a writable directory")
+
+
+def _create_run_dir(run_dir: Path, *, overwrite: bool) -> None:
+    if overwrite and run_dir.is_dir():
+        shutil.rmtree(run_dir)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CLIError(f"cannot create the run directory {run_dir}: {error.strerror or error}") from None
+
+
+# ----------------------------------------------------------------------------- progress
+
+
+class _Progress:
+    def __init__(self, first: int, last: int, enabled: bool):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=last, initial=first, desc="training", unit=" steps", dynamic_ncols=True,
+                            file=sys.stderr, smoothing=0.05)
+
+    def step(self, step: int, metrics) -> None:
+        if self.bar is not None:
+            self.bar.update(step - self.bar.n)
+            if step % 10 == 0:
+                self.bar.set_postfix(loss=f"{metrics['loss']:.3g}", lr=f"{metrics['learning_rate']:.2g}",
+                                     refresh=False)
+
+    def write(self, text: str) -> None:
+        if self.bar is not None:
+            self.bar.write(text, file=sys.stderr)
+        else:
+            print(text, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def run(args: argparse.Namespace) -> int:
+    import jax
+
+    from dispgns.data import DatasetError, load_dataset
+    from dispgns.data.examples import BatchStream
+    from dispgns.render import plot_training_curve
+    from dispgns.training import compute_normalization, create_train_state
+    from dispgns.training.checkpoint import (CONFIG_FILE, LOG_FILE, MODEL_DIR, CheckpointError, Checkpointer,
+                                             JsonlLog, configs_from, export_model, read_json, run_config,
+                                             write_json)
+    from dispgns.training.loop import Validator, train
+
+    run_dir = Path(args.out)
+    try:
+        metadata, splits = load_dataset(args.data, ["train"])
+        valid = load_dataset(args.data, ["valid"])[1]["valid"] if "valid" in metadata.splits else []
+    except DatasetError as error:
+        raise CLIError(str(error)) from None
+    train_trajectories = splits["train"]
+
+    model_config, train_config, explicit = resolve_configs(args, metadata.connectivity_radius)
+    if args.resume:
+        if not (run_dir / CONFIG_FILE).is_file():
+            raise CLIError(f"{run_dir}: no run to resume ({CONFIG_FILE} not found); start one without --resume")
+        try:
+            stored = read_json(run_dir / CONFIG_FILE, "configuration of the run")
+            stored_model, stored_train, normalization = configs_from(stored, str(run_dir / CONFIG_FILE))
+        except CheckpointError as error:
+            raise CLIError(str(error)) from None
+        model_config, train_config = resumed_configs(stored_model, stored_train, explicit, run_dir)
+    else:
+        _check_fresh_run_dir(run_dir, overwrite=args.overwrite)
+        normalization = compute_normalization(train_trajectories, noise_std=train_config.noise_std)
+    if model_config.dim != metadata.dim:
+        raise CLIError(f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, but the model has "
+                       f"dim = {model_config.dim}")
+    if tuple(map(tuple, metadata.bounds)) != model_config.bounds:
+        raise CLIError(f"{Path(args.data) / 'metadata.json'}: 'bounds' is {metadata.bounds}, but the model has "
+                       f"bounds = {model_config.bounds}")
+    try:
+        stream = BatchStream.for_training(train_trajectories, model_config, train_config)
+    except ValueError as error:
+        raise CLIError(f"{Path(args.data) / 'train.h5'}: {error}") from None
+    validator = Validator(valid, model_config, train_config) if valid else None
+
+    dataset_info = {"path": str(Path(args.data).absolute()), "preset": metadata.preset, "seed": metadata.seed,
+                    "trajectory_counts": dict(metadata.trajectory_counts), "frame_dt": metadata.frame_dt,
+                    "box_half_size": metadata.box_half_size}
+    config = run_config(model_config, train_config, normalization, dataset_info)
+    init_key, key = jax.random.split(jax.random.key(train_config.seed))
+    state = create_train_state(init_key, model_config, train_config, normalization)
+    # Everything is validated: only now is the run directory created or changed.
+    if not args.resume:
+        _create_run_dir(run_dir, overwrite=args.overwrite)
+    checkpointer = Checkpointer(run_dir, keep=train_config.keep_checkpoints, config=config)
+    log = JsonlLog(run_dir / LOG_FILE)
+    if args.resume and checkpointer.latest_step() is not None:
+        try:
+            state, key, _ = checkpointer.restore(state, key)
+        except CheckpointError as error:
+            checkpointer.close()
+            raise CLIError(str(error)) from None
+        log.truncate_after(int(state.step))
+    write_json(run_dir / CONFIG_FILE, config)
+
+    first, last = int(state.step), train_config.num_steps
+    progress = _Progress(first, last, enabled=not args.no_progress)
+    if first >= last:
+        progress.write(f"run is already at step {first} >= {last}; nothing to train (raise --steps to continue)")
+
+    def on_log(record):
+        log.write(record)
+        if record["kind"] == "validation":
+            shown = ", ".join(f"{k} {v:.4g}" for k, v in record.items() if k.startswith("valid_")
+                              and isinstance(v, float))
+            progress.write(f"step {record['step']}: {shown}")
+
+    try:
+        result = train(state, stream, key, until_step=last, validator=validator, checkpointer=checkpointer,
+                       on_step=progress.step, on_log=on_log)
+    finally:
+        progress.close()
+        checkpointer.close()
+    state = result.state
+    records = log.read()
+    record = {"steps": int(state.step), "train": train_config.to_dict(), "dataset": dataset_info,
+              "last_validation": result.last_validation}
+    export_model(run_dir / MODEL_DIR, state.params, model_config, record)
+    _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
+    if result.interrupted:
+        print(f"interrupted at step {int(state.step)}; checkpoint saved in {run_dir}; continue with "
+              f"dispgns train --data {args.data} --out {args.out} --resume", file=sys.stderr)
+        return 130
+    print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
+    return 0
+
+
+def _plot_log(records, path: Path, plot) -> None:
+    train = [r for r in records if r.get("kind") == "train"]
+    if not train:
+        return
+    validation = {}
+    for key, label in (("valid_one_step_loss", "valid one-step loss"), ("valid_rollout_mse", "valid rollout MSE")):
+        points = [(r["step"], r[key]) for r in records if r.get("kind") == "validation" and key in r]
+        if points:
+            validation[label] = ([p[0] for p in points], [p[1] for p in points])
+    plot([r["step"] for r in train], [r["loss"] for r in train], validation=validation or None,
+         smooth=10 if len(train) > 30 else 0, path=path)

@@ -1,0 +1,355 @@
+"""Files of a training run: orbax checkpoints, the resolved configs, the JSONL log, exported models.
+
+A run directory holds::
+
+    config.json          model, training and dataset settings of the run (resolved)
+    log.jsonl            one JSON object per logged step or validation
+    checkpoints/<step>/  orbax checkpoints, the last ``keep_checkpoints``
+    best/<step>/         the checkpoint with the best validation rollout MSE
+    model/               the exported final model (params.msgpack + model.json)
+
+An orbax checkpoint stores the :class:`~dispgns.training.TrainState` pytree
+(``params``, ``opt_state``, ``step``), the base PRNG key of the run and the
+data-order position, plus the resolved configs as JSON, so a checkpoint
+directory is self-describing. Orbax writes under a temporary name and
+renames, so a checkpoint is either complete or absent.
+
+An exported model (:func:`export_model`, :func:`load_model`) is what ships
+and what ``evaluate``/``render``/``demo`` load: the parameters as msgpack
+(flax.serialization: plain arrays, no pickle) and ``model.json`` with the
+:class:`~dispgns.model.ModelConfig` and a free-form training record.
+
+This module and :mod:`dispgns.data` are the only library modules that touch
+files, and only at the paths they are given.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+from flax import serialization
+
+from dispgns.model import ModelConfig, init_params
+from dispgns.training.step import TrainConfig, TrainState, create_train_state
+
+CONFIG_FILE = "config.json"
+LOG_FILE = "log.jsonl"
+CHECKPOINT_DIR = "checkpoints"
+BEST_DIR = "best"
+MODEL_DIR = "model"
+PARAMS_FILE = "params.msgpack"
+MODEL_FILE = "model.json"
+MODEL_FORMAT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A run directory, checkpoint or exported model is missing, malformed or does not match."""
+
+
+# ----------------------------------------------------------------------------- small file helpers
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` under a temporary name in the same directory, then rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as file:
+            file.write(data)
+        os.chmod(name, 0o644)
+        os.replace(name, path)
+    except BaseException:
+        Path(name).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: str | os.PathLike, values: Mapping[str, Any]) -> Path:
+    """``values`` as indented JSON at ``path``, atomically."""
+    path = Path(path)
+    _write_atomic(path, (json.dumps(values, indent=2, default=_json_default) + "\n").encode())
+    return path
+
+
+def read_json(path: str | os.PathLike, what: str) -> dict[str, Any]:
+    """Read a JSON object; :class:`CheckpointError` naming the file when it is missing or malformed."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: not found; expected the {what}")
+    try:
+        values = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise CheckpointError(f"{path}: cannot be read as JSON ({error}); expected the {what}") from None
+    if not isinstance(values, dict):
+        raise CheckpointError(f"{path}: holds a JSON {type(values).__name__}, expected an object ({what})")
+    return values
+
+
+def _json_default(value):
+    if isinstance(value, (np.generic, jnp.ndarray, np.ndarray)):
+        return np.asarray(value).tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+class JsonlLog:
+    """Append-only JSONL log (one object per line, flushed at once so a crash loses nothing)."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+
+    def write(self, record: Mapping[str, Any]) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self.path.open("a") as file:
+            file.write(json.dumps(record, default=_json_default) + "\n")
+            file.flush()
+
+    def read(self) -> list[dict[str, Any]]:
+        if not self.path.is_file():
+            return []
+        records = []
+        lines = self.path.read_text().splitlines()
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                # A run killed mid-write leaves at most one torn last line.
+                if number != len(lines):
+                    raise CheckpointError(f"{self.path}: line {number} is not JSON") from None
+        return records
+
+    def truncate_after(self, step: int) -> None:
+        """Drop records past ``step`` (a resumed run rewrites them), atomically."""
+        kept = [r for r in self.read() if int(r.get("step", 0)) <= step]
+        text = "".join(json.dumps(r, default=_json_default) + "\n" for r in kept)
+        _write_atomic(self.path, text.encode())
+
+
+# ----------------------------------------------------------------------------- run configuration
+
+
+def run_config(model_config: ModelConfig, train_config: TrainConfig, normalization: Mapping[str, Any],
+               dataset: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The resolved configuration of a run as a JSON-ready dict (what ``config.json`` holds)."""
+    from dispgns import __version__
+
+    return {
+        "dispgns_version": __version__,
+        "model": model_config.to_dict(),
+        "train": train_config.to_dict(),
+        "normalization": {k: np.asarray(v, np.float64).tolist() for k, v in normalization.items()},
+        "dataset": dict(dataset or {}),
+    }
+
+
+def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, TrainConfig, dict[str, np.ndarray]]:
+    """``(ModelConfig, TrainConfig, normalization)`` from a :func:`run_config` dict."""
+    try:
+        model_config = ModelConfig.from_dict(values["model"])
+        train_config = TrainConfig.from_dict(values["train"])
+        normalization = {k: np.asarray(v, np.float32) for k, v in values["normalization"].items()}
+    except KeyError as error:
+        raise CheckpointError(f"{where}: missing field {error.args[0]!r}; expected 'model', 'train' and "
+                              f"'normalization'") from None
+    except (TypeError, ValueError) as error:
+        raise CheckpointError(f"{where}: {error}") from None
+    return model_config, train_config, normalization
+
+
+# ----------------------------------------------------------------------------- orbax checkpoints
+
+
+def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[str, Any]:
+    return {"params": state.params, "opt_state": state.opt_state, "step": state.step,
+            "key": jax.random.key_data(key), "data_position": jnp.asarray(data_position, jnp.int64
+                                                                         if jax.config.jax_enable_x64 else jnp.int32)}
+
+
+class Checkpointer:
+    """Orbax checkpoints of one run: the last ``keep`` in ``checkpoints/``, the best one in ``best/``.
+
+    Args:
+      run_dir: the run directory.
+      keep: how many of the latest checkpoints to keep.
+      config: the resolved run configuration (:func:`run_config`), stored in
+        every checkpoint.
+    """
+
+    def __init__(self, run_dir: str | os.PathLike, *, keep: int = 3, config: Mapping[str, Any] | None = None):
+        self.run_dir = Path(run_dir)
+        self.config = dict(config or {})
+        options = dict(create=True, enable_async_checkpointing=False)
+        self._last = ocp.CheckpointManager(self.run_dir.absolute() / CHECKPOINT_DIR,
+                                           options=ocp.CheckpointManagerOptions(max_to_keep=keep, **options))
+        self._best = ocp.CheckpointManager(self.run_dir.absolute() / BEST_DIR,
+                                           options=ocp.CheckpointManagerOptions(max_to_keep=1, **options))
+        self.best_value = self._read_best_value()
+
+    def _read_best_value(self) -> float:
+        step = self._best.latest_step()
+        if step is None:
+            return float("inf")
+        extra = self._best.restore(step, args=ocp.args.Composite(extra=ocp.args.JsonRestore()))["extra"]
+        value = extra.get("validation_value")
+        return float("inf") if value is None else float(value)
+
+    def latest_step(self) -> int | None:
+        return self._last.latest_step()
+
+    def save(self, state: TrainState, key: jax.Array, *, data_position: int, validation: Mapping[str, Any] | None
+             = None, validation_value: float | None = None) -> None:
+        """Save ``state`` (and, if ``validation_value`` beats every earlier one, as the best too).
+
+        Args:
+          key: the run's base PRNG key (per-step keys are folded from it).
+          data_position: batches consumed so far (the data-order position).
+          validation: the latest validation metrics (stored as JSON).
+          validation_value: the number "best" is judged by (lower is better).
+        """
+        step = int(state.step)
+        extra = {"config": self.config, "step": step, "data_position": int(data_position),
+                 "validation": dict(validation or {}), "validation_value": validation_value}
+        tree = _state_tree(state, key, data_position)
+        args = ocp.args.Composite(state=ocp.args.StandardSave(tree), extra=ocp.args.JsonSave(extra))
+        if self._last.latest_step() != step:
+            self._last.save(step, args=args)
+            self._last.wait_until_finished()
+        if validation_value is not None and np.isfinite(validation_value) and validation_value < self.best_value:
+            if self._best.latest_step() == step:
+                return
+            self._best.save(step, args=args)
+            self._best.wait_until_finished()
+            self.best_value = float(validation_value)
+
+    def restore(self, template: TrainState, key: jax.Array, *, step: int | None = None, best: bool = False
+                ) -> tuple[TrainState, jax.Array, dict[str, Any]]:
+        """Restore into the structure of ``template`` (e.g. a fresh :func:`create_train_state`).
+
+        Returns:
+          ``(state, key, extra)``; ``extra`` holds ``data_position``,
+          ``validation``, ``config``.
+        """
+        manager = self._best if best else self._last
+        step = manager.latest_step() if step is None else step
+        if step is None:
+            raise CheckpointError(f"{manager.directory}: no checkpoint to restore")
+        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, _state_tree(template, key, 0))
+        try:
+            restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
+                                                                     extra=ocp.args.JsonRestore()))
+        except (ValueError, KeyError, TypeError) as error:
+            raise CheckpointError(f"{manager.directory}/{step}: does not match the run's configuration "
+                                  f"({error})") from None
+        tree, extra = restored["state"], restored["extra"]
+        state = template.replace(params=tree["params"], opt_state=tree["opt_state"], step=tree["step"])
+        return state, jax.random.wrap_key_data(tree["key"]), dict(extra)
+
+    def close(self) -> None:
+        self._last.close()
+        self._best.close()
+
+
+# ----------------------------------------------------------------------------- exported models
+
+
+def export_model(directory: str | os.PathLike, params, model_config: ModelConfig,
+                 record: Mapping[str, Any] | None = None) -> Path:
+    """Write a model directory (``params.msgpack`` + ``model.json``), replacing it atomically.
+
+    Args:
+      directory: the model directory to create or replace.
+      params: ``{"network", "normalization"}`` from a trained state.
+      model_config: its :class:`ModelConfig`.
+      record: JSON-ready provenance (training config, steps, dataset, metrics).
+    """
+    from dispgns import __version__
+
+    directory = Path(directory).absolute()
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}.tmp-"))
+    try:
+        os.chmod(staging, 0o755)
+        host = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), jax.device_get(params))
+        (staging / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(host)))
+        info = {"format_version": MODEL_FORMAT_VERSION, "dispgns_version": __version__,
+                "model": model_config.to_dict(), "record": dict(record or {})}
+        (staging / MODEL_FILE).write_text(json.dumps(info, indent=2, default=_json_default) + "\n")
+        if directory.exists():
+            old = directory.parent / f".{directory.name}.old-{os.getpid()}"
+            os.replace(directory, old)
+            os.replace(staging, directory)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(staging, directory)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return directory
+
+
+def load_model(directory: str | os.PathLike) -> tuple[dict, ModelConfig, dict[str, Any]]:
+    """Read a model directory written by :func:`export_model`.
+
+    Returns:
+      ``(params, model_config, info)``; ``info`` is ``model.json`` (with the
+      training ``record``).
+
+    Raises:
+      CheckpointError: a file is missing or malformed, or the parameters do
+        not have the shapes the stored config implies.
+    """
+    directory = Path(directory)
+    info = read_json(directory / MODEL_FILE, "model description of an exported dispgns model")
+    where = str(directory / MODEL_FILE)
+    if info.get("format_version") != MODEL_FORMAT_VERSION:
+        raise CheckpointError(f"{where}: 'format_version' is {info.get('format_version')!r}, expected "
+                              f"{MODEL_FORMAT_VERSION}")
+    try:
+        model_config = ModelConfig.from_dict(info["model"])
+    except KeyError:
+        raise CheckpointError(f"{where}: missing field 'model'") from None
+    except (TypeError, ValueError) as error:
+        raise CheckpointError(f"{where}: 'model' is not a valid ModelConfig: {error}") from None
+    path = directory / PARAMS_FILE
+    if not path.is_file():
+        raise CheckpointError(f"{path}: not found; expected the parameters of the exported model")
+    try:
+        raw = serialization.msgpack_restore(path.read_bytes())
+    except Exception as error:  # msgpack raises several unrelated types on corrupt input
+        raise CheckpointError(f"{path}: cannot be read as msgpack parameters ({error})") from None
+    template = jax.eval_shape(lambda: init_params(jax.random.key(0), model_config))
+    params = _match_template(template, raw, str(path))
+    return params, model_config, info
+
+
+def _match_template(template, raw, where: str, path: str = ""):
+    """``raw`` (nested dicts of arrays) checked against ``template``'s structure and shapes."""
+    if isinstance(template, Mapping):
+        if not isinstance(raw, Mapping):
+            raise CheckpointError(f"{where}: '{path or '/'}' is not a mapping, expected one with keys "
+                                  f"{sorted(template)}")
+        missing = sorted(set(template) - set(raw))
+        extra = sorted(set(raw) - set(template))
+        if missing or extra:
+            raise CheckpointError(f"{where}: '{path or '/'}' has keys missing {missing} / unexpected {extra} "
+                                  f"for the stored model config")
+        return {k: _match_template(template[k], raw[k], where, f"{path}/{k}") for k in template}
+    array = np.asarray(raw)
+    if array.shape != tuple(template.shape):
+        raise CheckpointError(f"{where}: '{path}' has shape {array.shape}, expected {tuple(template.shape)}")
+    return jnp.asarray(array, template.dtype)
+
+
+def restore_template(model_config: ModelConfig, train_config: TrainConfig,
+                     normalization: Mapping[str, Any]) -> TrainState:
+    """A fresh state of the right structure to restore a checkpoint into."""
+    return create_train_state(jax.random.key(0), model_config, train_config, normalization)

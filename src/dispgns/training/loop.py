@@ -1,0 +1,208 @@
+"""The training loop: steps, logging, validation and checkpoints around the pure :func:`train_step`.
+
+Determinism and resume. Step ``s`` (counting from 0) trains on batch ``s`` of
+the :class:`~dispgns.data.examples.BatchStream` (a pure function of the
+data-order seed and ``s``) with the noise key ``fold_in(key, s)``. A run
+restored from a checkpoint at step ``s`` therefore continues exactly as the
+uninterrupted run would have (on the same machine and software).
+
+The loop does no I/O of its own: it reports through callbacks (``on_step``
+for progress bars, ``on_log`` for log records) and saves through a
+:class:`~dispgns.training.checkpoint.Checkpointer`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from typing import Any, Callable, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dispgns import graph as graph_lib
+from dispgns.data.examples import BatchStream
+from dispgns.metrics import per_frame_mse
+from dispgns.model import ModelConfig
+from dispgns.simulator import rollout
+from dispgns.training.step import TrainConfig, TrainState, loss_fn, train_step_checked
+
+
+class Validator:
+    """Scores parameters on the valid split: one-step loss and a short rollout MSE.
+
+    * one-step loss: the training loss without noise or pushforward, on
+      ``train_config.validation_examples`` windows spread evenly over the
+      split (one padded batch, one compilation);
+    * rollout MSE: the first ``validation_trajectories`` trajectories rolled
+      out for ``validation_rollout_frames`` frames from their first ``C``
+      frames, mean squared position error over those frames (normalised
+      units), all padded to one node budget and one graph capacity so that
+      they share one compiled rollout.
+
+    Args:
+      trajectories: the valid split (objects with ``.position`` ``(T, N, D)``
+        and ``.radius`` ``(N,)``, normalised units).
+      model_config, train_config: the run's configs.
+    """
+
+    def __init__(self, trajectories: Sequence[Any], model_config: ModelConfig, train_config: TrainConfig):
+        self.model_config = model_config
+        c = model_config.input_sequence_length
+        self.clean_config = dataclasses.replace(train_config, noise_std=0.0, pushforward_steps=0)
+        self.batch = None
+        if train_config.validation_examples > 0:
+            stream = BatchStream(trajectories, input_sequence_length=c, batch_size=1,
+                                 connectivity_radius=model_config.connectivity_radius, shuffle=False,
+                                 bounds=model_config.bounds)
+            count = min(train_config.validation_examples, stream.num_examples)
+            ids = np.unique(np.linspace(0, stream.num_examples - 1, count).round().astype(np.int64))
+            self.batch = stream.make_batch(ids)
+        self.rollouts = []
+        count = min(train_config.validation_trajectories, len(trajectories))
+        chosen = [t for t in trajectories[:count] if t.position.shape[0] > c]
+        self.frames = 0
+        if chosen:
+            self.frames = min([train_config.validation_rollout_frames] + [t.position.shape[0] - c for t in chosen])
+        if self.frames > 0:
+            budget = int(8 * math.ceil(max(t.position.shape[1] for t in chosen) / 8))
+            for traj in chosen:
+                n = traj.position.shape[1]
+                x = np.zeros((c + self.frames, budget, model_config.dim), np.float32)
+                x[:, :n] = traj.position[:c + self.frames]
+                radius = np.ones((budget,), np.float32)
+                radius[:n] = traj.radius
+                mask = np.arange(budget) < n
+                self.rollouts.append((x, radius, mask))
+            fits = [graph_lib.capacity_for(x, m, connectivity_radius=model_config.connectivity_radius,
+                                           bounds=model_config.bounds, margin=0.25) for x, _, m in self.rollouts]
+            cells = [f.cell for f in fits if f.cell is not None]
+            self.capacity = graph_lib.GraphCapacity(edges=max(f.edges for f in fits),
+                                                    cell=max(cells) if cells else None)
+
+    def __call__(self, params) -> dict[str, float]:
+        out: dict[str, float] = {}
+        if self.batch is not None:
+            out["valid_one_step_loss"] = float(_clean_loss(params, self.batch, self.model_config, self.clean_config))
+        if self.rollouts:
+            c = self.model_config.input_sequence_length
+            errors = []
+            for x, radius, mask in self.rollouts:
+                predicted = rollout(params, x[:c], radius, self.frames, model_config=self.model_config, mask=mask,
+                                    capacity=self.capacity)
+                errors.append(float(jnp.mean(per_frame_mse(jnp.concatenate([x[:c], predicted]), x,
+                                                           input_frames=c, mask=mask))))
+            out["valid_rollout_mse"] = float(np.mean(errors))
+            out["valid_rollout_frames"] = self.frames
+        return out
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _clean_loss(params, batch, model_config, train_config):
+    return loss_fn(params["network"], params["normalization"], batch, jax.random.key(0), model_config,
+                   train_config)[0]
+
+
+@dataclasses.dataclass
+class LoopResult:
+    """What :func:`train` returns: the final state and why it stopped."""
+
+    state: TrainState
+    interrupted: bool
+    last_validation: dict[str, Any]
+
+
+def train(state: TrainState, stream: BatchStream, key: jax.Array, *, until_step: int | None = None,
+          validator: Callable[[Any], Mapping[str, Any]] | None = None, checkpointer=None,
+          on_step: Callable[[int, Mapping[str, float]], None] | None = None,
+          on_log: Callable[[Mapping[str, Any]], None] | None = None) -> LoopResult:
+    """Train from ``state.step`` up to ``until_step`` (default ``train_config.num_steps``).
+
+    Every ``log_every`` steps ``on_log`` gets ``{"kind": "train", "step",
+    "loss" (mean since the last record), "grad_norm", "learning_rate",
+    "steps_per_s", "elapsed_s"}``; every ``validate_every`` steps (and at the
+    end) ``validator(params)`` runs and ``on_log`` gets ``{"kind":
+    "validation", "step", ...metrics}``; every ``checkpoint_every`` steps, at
+    the end and on ``KeyboardInterrupt`` the checkpointer saves (the best
+    checkpoint is judged by ``valid_rollout_mse``, else the one-step loss).
+
+    Args:
+      state: where to start (fresh or restored).
+      stream: the training batches; its position is set to ``state.step``.
+      key: the run's base PRNG key.
+      until_step: last step (exclusive bound on steps taken).
+      validator: e.g. a :class:`Validator`.
+      checkpointer: a :class:`~dispgns.training.checkpoint.Checkpointer` or ``None``.
+      on_step: ``(step, {"loss", "learning_rate"})`` after every step.
+      on_log: receives every log record.
+
+    Returns:
+      :class:`LoopResult`. On ``KeyboardInterrupt`` the state is checkpointed
+      and returned with ``interrupted = True`` (the caller decides the exit
+      code).
+    """
+    tc = state.train_config
+    until = tc.num_steps if until_step is None else int(until_step)
+    log = on_log or (lambda record: None)
+    step = int(state.step)
+    stream.position = step
+    start_time = time.perf_counter()
+    window_start, window_step = start_time, step
+    losses, norms = [], []
+    last_validation: dict[str, Any] = {}
+    validated_at = checkpointed_at = None
+
+    def validate():
+        nonlocal last_validation, validated_at
+        if validator is None or validated_at == step:
+            return
+        metrics = dict(validator(state.params))
+        last_validation = {"kind": "validation", "step": step, **metrics,
+                           "elapsed_s": time.perf_counter() - start_time}
+        validated_at = step
+        log(last_validation)
+
+    def checkpoint():
+        nonlocal checkpointed_at
+        if checkpointer is None or checkpointed_at == step:
+            return
+        value = None
+        if validated_at == step:
+            value = last_validation.get("valid_rollout_mse", last_validation.get("valid_one_step_loss"))
+        checkpointer.save(state, key, data_position=stream.position, validation=last_validation,
+                          validation_value=value)
+        checkpointed_at = step
+
+    interrupted = False
+    try:
+        while step < until:
+            batch = stream.batch(step)
+            state, metrics, _ = train_step_checked(state, batch, jax.random.fold_in(key, step), grow=stream.grow)
+            step += 1
+            stream.position = step
+            loss = float(metrics["loss"])
+            losses.append(loss)
+            norms.append(float(metrics["grad_norm"]))
+            if on_step is not None:
+                on_step(step, {"loss": loss, "learning_rate": float(metrics["learning_rate"])})
+            if step % tc.log_every == 0 or step == until:
+                now = time.perf_counter()
+                log({"kind": "train", "step": step, "loss": float(np.mean(losses)),
+                     "grad_norm": float(np.mean(norms)), "learning_rate": float(metrics["learning_rate"]),
+                     "steps_per_s": (step - window_step) / max(now - window_start, 1e-9),
+                     "elapsed_s": now - start_time})
+                losses, norms = [], []
+                window_start, window_step = now, step
+            if tc.validate_every and step % tc.validate_every == 0:
+                validate()
+            if tc.checkpoint_every and step % tc.checkpoint_every == 0:
+                checkpoint()
+        validate()
+        checkpoint()
+    except KeyboardInterrupt:
+        interrupted = True
+        checkpoint()
+    return LoopResult(state=state, interrupted=interrupted, last_validation=last_validation)

@@ -1,0 +1,197 @@
+"""The training loop, orbax checkpoints, exact resume, exported models and ``dispgns train``."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from dispgns.cli import main
+from dispgns.data import load_dataset
+from dispgns.data.examples import BatchStream
+from dispgns.training import TrainConfig, compute_normalization, create_train_state
+from dispgns.training.checkpoint import CheckpointError, Checkpointer, export_model, load_model
+from dispgns.training.loop import Validator, train
+
+LOOP = TrainConfig(learning_rate=1e-3, log_every=5, validate_every=10, checkpoint_every=10, keep_checkpoints=2,
+                   validation_examples=8, validation_trajectories=1, validation_rollout_frames=10)
+TINY_ARGS = ["--set", "model.latent_size=16", "--set", "model.hidden_size=16", "--set",
+             "model.message_passing_steps=2", "--set", "train.log_every=10", "--set", "train.validate_every=20",
+             "--set", "train.checkpoint_every=20", "--set", "train.validation_rollout_frames=20", "--no-progress"]
+
+
+def leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+@pytest.fixture(scope="module")
+def data(tiny_dataset):
+    _, splits = load_dataset(tiny_dataset, ["train", "valid"])
+    return splits["train"], splits["valid"]
+
+
+def fresh(data, model_config, train_config=LOOP):
+    train_trajs, _ = data
+    norm = compute_normalization(train_trajs, noise_std=train_config.noise_std)
+    init_key, key = jax.random.split(jax.random.key(train_config.seed))
+    state = create_train_state(init_key, model_config, train_config, norm)
+    stream = BatchStream.for_training(train_trajs, model_config, train_config)
+    return state, stream, key
+
+
+def test_resume_equals_uninterrupted(data, tiny_model_config, tmp_path):
+    state, stream, key = fresh(data, tiny_model_config)
+    whole = train(state, stream, key, until_step=20).state
+
+    state, stream, key = fresh(data, tiny_model_config)
+    first = Checkpointer(tmp_path / "run", keep=2)
+    half = train(state, stream, key, until_step=10, checkpointer=first).state
+    first.close()
+    # A new process would rebuild everything from scratch and restore.
+    template, stream, _ = fresh(data, tiny_model_config)
+    again = Checkpointer(tmp_path / "run", keep=2)
+    restored, restored_key, extra = again.restore(template, jax.random.key(123))
+    assert int(restored.step) == 10 and extra["data_position"] == 10
+    np.testing.assert_array_equal(jax.random.key_data(restored_key), jax.random.key_data(key))
+    for a, b in zip(leaves(half.opt_state), leaves(restored.opt_state)):
+        np.testing.assert_array_equal(a, b)
+    resumed = train(restored, stream, restored_key, until_step=20, checkpointer=again).state
+    again.close()
+    assert int(resumed.step) == int(whole.step) == 20
+    for a, b in zip(leaves(whole.params), leaves(resumed.params)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    # And training changed something: the comparison is not trivially true.
+    assert not all(np.array_equal(a, b) for a, b in zip(leaves(whole.params), leaves(template.params)))
+
+
+def test_loop_logs_validates_and_keeps_last_and_best(data, tiny_model_config, tmp_path):
+    state, stream, key = fresh(data, tiny_model_config)
+    records = []
+    validator = Validator(data[1], tiny_model_config, LOOP)
+    checkpointer = Checkpointer(tmp_path / "run", keep=2)
+    values = iter([3.0, 1.0, 2.0])
+    scored = lambda params: {"valid_rollout_mse": next(values)}
+    result = train(state, stream, key, until_step=30, validator=scored, checkpointer=checkpointer,
+                   on_log=records.append)
+    checkpointer.close()
+    assert [r["step"] for r in records if r["kind"] == "train"] == [5, 10, 15, 20, 25, 30]
+    assert [(r["step"], r["valid_rollout_mse"]) for r in records if r["kind"] == "validation"] == [
+        (10, 3.0), (20, 1.0), (30, 2.0)]
+    assert sorted(int(p.name) for p in (tmp_path / "run" / "checkpoints").iterdir() if p.name.isdigit()) == [20, 30]
+    assert [p.name for p in (tmp_path / "run" / "best").iterdir() if p.name.isdigit()] == ["20"]
+    assert not result.interrupted and int(result.state.step) == 30
+    # The real validator: finite numbers, deterministic.
+    first, second = validator(result.state.params), validator(result.state.params)
+    assert first == second and np.isfinite(first["valid_one_step_loss"]) and first["valid_rollout_frames"] == 10
+
+
+def test_keyboard_interrupt_checkpoints_and_returns(data, tiny_model_config, tmp_path):
+    state, stream, key = fresh(data, tiny_model_config)
+    checkpointer = Checkpointer(tmp_path / "run", keep=2)
+
+    def interrupt(step, metrics):
+        if step == 7:
+            raise KeyboardInterrupt
+
+    result = train(state, stream, key, until_step=30, checkpointer=checkpointer, on_step=interrupt)
+    assert result.interrupted and int(result.state.step) == 7
+    assert checkpointer.latest_step() == 7
+    checkpointer.close()
+
+
+def test_exported_model_round_trip_and_errors(data, tiny_model_config, tmp_path):
+    state, _, _ = fresh(data, tiny_model_config)
+    directory = export_model(tmp_path / "model", state.params, tiny_model_config, {"steps": 0})
+    params, config, info = load_model(directory)
+    assert config == tiny_model_config and info["record"] == {"steps": 0}
+    for a, b in zip(leaves(state.params), leaves(params)):
+        np.testing.assert_array_equal(a, b)
+    # Replacing keeps one complete directory.
+    export_model(directory, state.params, tiny_model_config, {"steps": 1})
+    assert load_model(directory)[2]["record"] == {"steps": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]
+
+    info = json.loads((directory / "model.json").read_text())
+    info["model"]["latent_size"] = 32
+    (directory / "model.json").write_text(json.dumps(info))
+    with pytest.raises(CheckpointError, match=r"params.msgpack: .* has shape .* expected"):
+        load_model(directory)
+    (directory / "params.msgpack").write_bytes(b"not msgpack")
+    with pytest.raises(CheckpointError, match="params.msgpack"):
+        load_model(directory)
+    with pytest.raises(CheckpointError, match="model.json: not found"):
+        load_model(tmp_path / "nowhere")
+
+
+# ----------------------------------------------------------------------------- the CLI
+
+
+def cli_params(run):
+    return leaves(load_model(run / "model")[0])
+
+
+def test_cli_train_resume_equals_uninterrupted(tiny_dataset, tmp_path, capsys):
+    whole, split = tmp_path / "whole", tmp_path / "split"
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(whole), "--steps", "40", *TINY_ARGS]) == 0
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(split), "--steps", "20", *TINY_ARGS]) == 0
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(split), "--steps", "40", "--resume",
+                 "--no-progress"]) == 0
+    for a, b in zip(cli_params(whole), cli_params(split)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    records = [json.loads(line) for line in (split / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records if r["kind"] == "train"] == [10, 20, 30, 40]
+    assert {r["step"] for r in records if r["kind"] == "validation"} == {20, 40}
+    config = json.loads((split / "config.json").read_text())
+    assert config["model"]["latent_size"] == 16 and config["model"]["connectivity_radius"] == 0.4
+    assert config["train"]["num_steps"] == 40
+    assert (split / "training_curve.png").stat().st_size > 1000
+    # The checkpoint carries the resolved config too.
+    again = Checkpointer(split)
+    template = create_train_state(jax.random.key(0), load_model(split / "model")[1], TrainConfig(num_steps=40),
+                                  {k: np.asarray(v, np.float32) for k, v in config["normalization"].items()})
+    _, _, extra = again.restore(template, jax.random.key(0))
+    again.close()
+    assert extra["config"]["model"] == config["model"] and extra["step"] == 40
+
+    # A resumed run must keep its model and learning settings.
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(split), "--resume", "--set",
+                 "model.input_sequence_length=5", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "input_sequence_length: checkpoint 6, requested 5" in err
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(split), "--resume", "--set",
+                 "train.noise_std=0.1", "--no-progress"])
+    assert code == 2 and "noise_std" in capsys.readouterr().err
+
+
+def test_cli_train_bad_inputs_leave_nothing(tiny_dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+
+    def fails(*argv, match):
+        assert main(["train", *argv, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert match in err, err
+
+    fails("--data", str(tmp_path / "missing"), "--out", str(run), match="metadata.json: not found")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "metadata.json").write_text("{\"dim\": 2")
+    fails("--data", str(broken), "--out", str(run), match="metadata.json: cannot be read as JSON")
+    fails("--data", str(tiny_dataset), "--out", str(run), "--set", "model.latent_size=0",
+          match="ModelConfig.latent_size must be an integer >= 1")
+    fails("--data", str(tiny_dataset), "--out", str(run), "--set", "model.dim=3", match="'dim' is 2")
+    fails("--data", str(tiny_dataset), "--out", str(run), "--set", "nosection", match="SECTION.FIELD=VALUE")
+    config = tmp_path / "config.yaml"
+    config.write_text("model:\n  latent_sise: 8\n")
+    fails("--data", str(tiny_dataset), "--out", str(run), "--config", str(config),
+          match="unknown ModelConfig field(s) ['latent_sise']")
+    fails("--data", str(tiny_dataset), "--out", str(run), "--resume", match="no run to resume")
+    assert not run.exists()
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    fails("--data", str(tiny_dataset), "--out", str(blocker / "run"), match="cannot create the run directory")
+    occupied = tmp_path / "occupied"
+    occupied.mkdir()
+    (occupied / "notes.txt").write_text("mine")
+    fails("--data", str(tiny_dataset), "--out", str(occupied), match="exists and is not empty")
+    fails("--data", str(tiny_dataset), "--out", str(occupied), "--overwrite", match="not a dispgns run")
+    assert sorted(p.name for p in occupied.iterdir()) == ["notes.txt"]
