@@ -9,7 +9,7 @@ import pytest
 
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig, init_params
-from dispgns.simulator import predict_acceleration, predict_position, rollout
+from dispgns.simulator import predict_acceleration, predict_position, rollout, rollout_batch
 
 DATA = Path(__file__).parent / "data" / "features.npz"
 TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
@@ -88,6 +88,28 @@ def test_vmap_over_padded_trajectories_equals_loop(params, inputs):
     # Padding particles stay where they were.
     np.testing.assert_array_equal(np.asarray(batched[1, :, sizes[1]:]),
                                   np.broadcast_to(np.asarray(xs[1, -1, sizes[1]:]), (STEPS, N - sizes[1], 2)))
+
+
+def test_rollout_batch_equals_single_rollouts_and_survives_overflow(params, inputs):
+    x, a = inputs
+    sizes = (N, N - 11)
+    second = x[:, 5:5 + sizes[1]] * jnp.array([-1.0, 1.0])
+    xs = jnp.stack([x, jnp.pad(second, ((0, 0), (0, N - sizes[1]), (0, 0)))])
+    radii = jnp.stack([a, jnp.pad(a[5:5 + sizes[1]], (0, N - sizes[1]), constant_values=1.0)])
+    masks = np.stack([np.ones(N, bool), np.arange(N) < sizes[1]])
+    done = []
+    batched = rollout_batch(params, xs, radii, STEPS, model_config=TINY, mask=masks, chunk_size=5,
+                            progress=done.append)
+    # Too small a capacity at first: overflow, growth, recomputation, same answer.
+    small = rollout_batch(params, xs, radii, STEPS, model_config=TINY, mask=masks, capacity=GraphCapacity(16),
+                          chunk_size=5)
+    assert batched.shape == (2, STEPS, N, 2) and done[-1] == STEPS
+    np.testing.assert_allclose(np.asarray(small), np.asarray(batched), rtol=0, atol=1e-6)
+    for k, n in enumerate(sizes):
+        single = rollout(params, xs[k, :, :n], radii[k, :n], STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
+        np.testing.assert_allclose(np.asarray(batched[k, :, :n]), np.asarray(single), rtol=0, atol=2e-6)
+    with pytest.raises(ValueError, match="shape"):
+        rollout_batch(params, xs[0], radii[0], 2, model_config=TINY)
 
 
 def test_rollout_is_differentiable(params, inputs):

@@ -399,8 +399,6 @@ def chaos_floor_rollout(initial_position, initial_velocity, radius, config: Phys
       ``(n_frames, N, D)`` numpy array of positions divided by ``L`` (float64
       with ``x64``), directly comparable with the stored normalised truth.
     """
-    if perturbation < 0 or not math.isfinite(perturbation):
-        raise ValueError(f"perturbation must be a finite number >= 0 (units of L), got {perturbation!r}")
     if isinstance(key, (int, np.integer)):
         key = jax.random.PRNGKey(int(key))
     half = config.box_half_size
@@ -414,18 +412,41 @@ def chaos_floor_rollout(initial_position, initial_velocity, radius, config: Phys
                 f"expected initial_position (N, D), initial_velocity (N, D) and radius (N,), got "
                 f"{x0.shape}, {v0.shape} and {a.shape}"
             )
-        noise = jax.random.normal(key, x0.shape, dtype) * (perturbation * half)
-        if mask is not None:
-            noise = noise * _weights(mask, x0.shape[0], dtype)[:, None]
-        shifted = x0 + noise
-        lower, upper = (-half + a)[:, None], (half - a)[:, None]
-        # Clip only what the noise pushed across a wall contact position, so an
-        # unperturbed particle (or a padding one) keeps its exact position.
-        shifted = jnp.where((shifted > upper) & (x0 <= upper), upper, shifted)
-        shifted = jnp.where((shifted < lower) & (x0 >= lower), lower, shifted)
+        shifted = perturb_positions(key, x0, a, config, perturbation=perturbation, mask=mask)
         frames = simulate(shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask,
                           **simulate_kwargs)
         return np.asarray(frames) / half
+
+
+def perturb_positions(key, initial_position, radius, config: PhysicsConfig, *, perturbation: float = 1e-6,
+                      mask=None) -> jnp.ndarray:
+    """Initial centres shifted by independent normal draws of std ``perturbation * L`` (the chaos floor's start).
+
+    Shifted centres are kept inside the wall contact positions ``[-L + a_i,
+    L - a_i]`` (only where the noise pushed them across), so an unperturbed
+    or padding particle keeps its exact position.
+
+    Args:
+      key: a ``jax.random`` key.
+      initial_position: ``(N, D)`` centres in m. radius: ``(N,)`` in m.
+      perturbation: std in units of ``L`` (finite, >= 0).
+      mask: optional ``(N,)`` bool; padding particles are not moved.
+
+    Returns:
+      ``(N, D)`` shifted centres in m, in the dtype of ``initial_position``.
+    """
+    if perturbation < 0 or not math.isfinite(perturbation):
+        raise ValueError(f"perturbation must be a finite number >= 0 (units of L), got {perturbation!r}")
+    x0 = jnp.asarray(initial_position)
+    a = jnp.asarray(radius, x0.dtype)
+    half = config.box_half_size
+    noise = jax.random.normal(key, x0.shape, x0.dtype) * (perturbation * half)
+    if mask is not None:
+        noise = noise * _weights(mask, x0.shape[0], x0.dtype)[:, None]
+    shifted = x0 + noise
+    lower, upper = (-half + a)[:, None], (half - a)[:, None]
+    shifted = jnp.where((shifted > upper) & (x0 <= upper), upper, shifted)
+    return jnp.where((shifted < lower) & (x0 >= lower), lower, shifted)
 
 
 # ----------------------------------------------------------------------------

@@ -339,3 +339,129 @@ def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -
                                  bounds=model_config.bounds, use_cell_list=capacity.cell is not None, margin=0.2)
     cell = None if capacity.cell is None else max(grown.cell, fit.cell)
     return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)
+
+
+def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig):
+    """:func:`one_step` for ``B`` trajectories at once, evaluated as one disjoint graph.
+
+    Args:
+      position_seq: ``(B, C, N, D)``; radius, mask: ``(B, N)``.
+
+    Returns:
+      ``(acceleration (B, N, D), next position (B, N, D), overflow (B,))``.
+    """
+    x, a = jax.vmap(lambda p, r, m: sanitize(p, r, m, model_config))(position_seq, radius, mask)
+    graphs = jax.vmap(lambda p, m: build_graph(p, m, capacity, model_config))(x[:, -1], mask)
+    output = network_output_batch(params, x, a, graphs, model_config=model_config)
+    acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
+    acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
+    last = position_seq[:, -1]
+    next_position = jnp.where(mask[..., None], last + (last - position_seq[:, -2]) + acc, last)
+    return acc, next_position, graphs.overflow
+
+
+@functools.partial(jax.jit, static_argnames=("length", "capacity", "model_config"))
+def _scan_steps_batch(params, windows, radius, mask, *, length: int, capacity: GraphCapacity,
+                      model_config: ModelConfig):
+    """``length`` steps of ``B`` windows ``(B, C, N, D)``: (last windows, positions (length, B, N, D), flags (length, B))."""
+
+    def body(carry, _):
+        windows, overflow = carry
+        _, nxt, step_overflow = one_step_batch(params, windows, radius, mask, capacity, model_config)
+        overflow = overflow | step_overflow
+        windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
+        return (windows, overflow), (nxt, overflow)
+
+    overflow = jnp.zeros(windows.shape[:1], bool)
+    (windows, _), (positions, flags) = lax.scan(body, (windows, overflow), None, length=length)
+    return windows, positions, flags
+
+
+def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
+                  capacity=None, chunk_size: int = 50, progress=None):
+    """Rollouts of ``B`` trajectories of equal padded size in one compiled program per chunk.
+
+    The same result as :func:`rollout` of each trajectory (padding never
+    changes a real particle), computed on one disjoint graph of all ``B``
+    trajectories per step, with the same chunked overflow handling: after an
+    overflow in any trajectory the capacity grows and every trajectory is
+    recomputed from the first overflowing step on. Concrete arrays only
+    (under ``jit``/``vmap`` use ``jax.vmap(rollout)``).
+
+    Args:
+      params: from :func:`dispgns.init_params`.
+      initial_positions: ``(B, C, N, D)`` first ``C`` frames (normalised
+        units), padding rows anywhere (masked).
+      radius: ``(B, N)`` radii (normalised units).
+      n_steps: frames to predict.
+      model_config: static :class:`ModelConfig`.
+      mask: optional ``(B, N)`` bool, ``False`` for padding particles.
+      capacity: optional graph capacity per trajectory (``None``: sized from
+        the initial frames of every trajectory).
+      chunk_size: steps per compiled chunk.
+      progress: optional ``progress(done_steps)`` callback after each chunk.
+
+    Returns:
+      ``(B, n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
+    """
+    windows = jnp.asarray(initial_positions)
+    if not jnp.issubdtype(windows.dtype, jnp.floating):
+        windows = windows.astype(jnp.float32)
+    c, d = model_config.input_sequence_length, model_config.dim
+    if windows.ndim != 4 or windows.shape[1] != c or windows.shape[3] != d:
+        raise ValueError(f"initial_positions must have shape (B, {c}, N, {d}), got {windows.shape}")
+    b, _, n, _ = windows.shape
+    radius = jnp.asarray(radius, windows.dtype)
+    if radius.shape != (b, n):
+        raise ValueError(f"radius must have shape ({b}, {n}), got {radius.shape}")
+    mask = np.ones((b, n), bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (b, n):
+        raise ValueError(f"mask must have shape ({b}, {n}), got {mask.shape}")
+    if n_steps < 1:
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    if _is_traced(params, windows, radius):
+        raise ValueError("rollout_batch needs concrete arrays; under a transformation use jax.vmap(rollout)")
+    mask = jnp.asarray(mask)
+    capacity = _as_capacity(capacity)
+    if capacity is None:
+        capacity = _batch_capacity(None, windows[:, -1], mask, model_config, margin=0.1)
+    n_chunks = math.ceil(n_steps / max(1, chunk_size))
+    length = math.ceil(n_steps / n_chunks)
+    chunks, done = [], 0
+    while done < n_steps:
+        new_windows, positions, flags = _scan_steps_batch(params, windows, radius, mask, length=length,
+                                                          capacity=capacity, model_config=model_config)
+        keep = min(length, n_steps - done)
+        any_flag = np.asarray(flags).any(axis=1)
+        if any_flag[keep - 1]:
+            valid = int(np.argmax(any_flag))
+            if valid:
+                moved = jnp.moveaxis(positions[:valid], 0, 1)
+                chunks.append(moved)
+                windows = jnp.concatenate([windows, moved], axis=1)[:, -c:]
+                done += valid
+            capacity = _batch_capacity(capacity, windows[:, -1], mask, model_config, margin=0.2)
+            continue
+        chunks.append(jnp.moveaxis(positions[:keep], 0, 1))
+        windows = new_windows
+        done += keep
+        if progress is not None:
+            progress(done)
+    return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=1)
+
+
+def _batch_capacity(capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *,
+                    margin: float) -> GraphCapacity:
+    """A capacity that fits every trajectory's graph of ``positions`` ``(B, N, D)`` (grown past ``capacity``)."""
+    positions, mask = np.asarray(positions), np.asarray(mask)
+    use_cells = None if capacity is None else capacity.cell is not None
+    fits = [graph_lib.capacity_for(p, m, connectivity_radius=model_config.connectivity_radius,
+                                   bounds=model_config.bounds, use_cell_list=use_cells, margin=margin)
+            for p, m in zip(positions, mask)]
+    cells = [f.cell for f in fits if f.cell is not None]
+    fit = GraphCapacity(edges=max(f.edges for f in fits), cell=max(cells) if cells else None)
+    if capacity is None:
+        return fit
+    grown = graph_lib.grow_capacity(capacity, positions.shape[1], factor=1.25)
+    cell = None if capacity.cell is None else max(grown.cell, fit.cell or 0)
+    return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)

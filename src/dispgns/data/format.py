@@ -144,7 +144,8 @@ def _check_array(where: str, name: str, value, shape: tuple, kind: str, dtype=No
 
 
 def validate_trajectory(trajectory: Trajectory, where: str, *, dim: int | None = None,
-                        n_frames: int | None = None, box_half_size: float | None = None) -> None:
+                        n_frames: int | None = None, box_half_size: float | None = None,
+                        predicted: bool = False) -> None:
     """Check every field of ``trajectory``; raise :class:`DatasetError` prefixed with ``where``.
 
     Args:
@@ -153,13 +154,17 @@ def validate_trajectory(trajectory: Trajectory, where: str, *, dim: int | None =
       dim, n_frames: expected ``D`` and ``T`` (``None``: not checked).
       box_half_size: L in m, to check that the initial state lies in the box
         and agrees with ``position[0]`` (``None``: not checked).
+      predicted: the positions are a model's prediction (a rollout written
+        by ``dispgns evaluate``): they may leave the box or diverge to
+        non-finite values, which are then stored as they are.
     """
-    position = _check_array(where, "position", trajectory.position, (n_frames, None, dim), "float", np.float32)
+    position = _check_array(where, "position", trajectory.position, (n_frames, None, dim),
+                            "any" if predicted else "float", np.float32)
     t, n, d = position.shape
     if t < 1 or n < 1 or d < 1:
         _fail(where, f"'position' has shape {position.shape}, expected at least one frame, particle and axis")
     outside = np.abs(position) > 1.0 + BOX_TOLERANCE
-    if outside.any():
+    if outside.any() and not predicted:
         frame, particle, axis = (int(i) for i in np.argwhere(outside)[0])
         _fail(where, f"'position' frame {frame} particle {particle} axis {axis} is "
                      f"{position[frame, particle, axis]:.6g}, expected inside the box [-1, 1]")
@@ -423,7 +428,7 @@ def _json_value(value):
 
 
 def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory], *,
-                box_half_size: float | None = None) -> Path:
+                box_half_size: float | None = None, predicted: bool = False) -> Path:
     """Validate and write one split file atomically.
 
     The file is written under a temporary name in the same directory and
@@ -434,6 +439,8 @@ def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory], *,
       trajectories: the trajectories, stored as groups ``00000``, ``00001``, ...
       box_half_size: L in m, to also check each initial state against its
         normalised positions (recommended).
+      predicted: the positions are a model's rollout (see
+        :func:`validate_trajectory`); the file attribute ``predicted`` is set.
 
     Returns:
       ``path`` as a :class:`~pathlib.Path`.
@@ -445,11 +452,13 @@ def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory], *,
     dim = trajectories[0].position.shape[-1] if np.ndim(trajectories[0].position) == 3 else None
     for index, trajectory in enumerate(trajectories):
         validate_trajectory(trajectory, f"{path.name}: trajectory {trajectory_name(index)}", dim=dim,
-                            box_half_size=box_half_size)
+                            box_half_size=box_half_size, predicted=predicted)
     temporary = _temporary_path(path)
     try:
         with h5py.File(temporary, "w") as file:
             file.attrs["format_version"] = FORMAT_VERSION
+            if predicted:
+                file.attrs["predicted"] = True
             for index, trajectory in enumerate(trajectories):
                 group = file.create_group(trajectory_name(index))
                 group.create_dataset("position", data=trajectory.position)
@@ -593,6 +602,8 @@ def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None)
         raise DatasetError(f"{name}: cannot be opened as HDF5: {error}") from None
     trajectories = []
     with file:
+        # Rollouts written by `dispgns evaluate` may leave the box (see validate_trajectory).
+        predicted = bool(file.attrs.get("predicted", False))
         groups = sorted(file.keys())
         if "count" in expected and len(groups) != expected["count"]:
             _fail(name, f"holds {len(groups)} trajectories, expected {expected['count']} (metadata.json)")
@@ -627,7 +638,8 @@ def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None)
             if n_frames is None and np.ndim(trajectory.position) == 3:
                 n_frames = trajectory.n_frames
             validate_trajectory(trajectory, where, dim=dim, n_frames=n_frames,
-                                box_half_size=None if metadata is None else metadata.box_half_size)
+                                box_half_size=None if metadata is None else metadata.box_half_size,
+                                predicted=predicted)
             if "particles" in expected and trajectory.n_particles != expected["particles"][index]:
                 _fail(where, f"'position' holds {trajectory.n_particles} particles, expected "
                              f"{expected['particles'][index]} (metadata.json particle_counts)")

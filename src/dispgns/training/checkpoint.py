@@ -353,3 +353,39 @@ def restore_template(model_config: ModelConfig, train_config: TrainConfig,
                      normalization: Mapping[str, Any]) -> TrainState:
     """A fresh state of the right structure to restore a checkpoint into."""
     return create_train_state(jax.random.key(0), model_config, train_config, normalization)
+
+
+def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[dict, ModelConfig, dict[str, Any]]:
+    """Parameters from an exported model directory or a training run directory.
+
+    Args:
+      path: a directory with ``model.json`` (:func:`export_model`), or a run
+        directory with ``config.json`` (then its exported ``model/``, or its
+        latest checkpoint when the run has not exported one yet).
+      best: from a run directory, take the best checkpoint by validation.
+
+    Returns:
+      ``(params, model_config, info)``; ``info["source"]`` says what was loaded.
+    """
+    path = Path(path)
+    if (path / MODEL_FILE).is_file() and not best:
+        params, model_config, info = load_model(path)
+        return params, model_config, {**info, "source": str(path)}
+    if not (path / CONFIG_FILE).is_file():
+        raise CheckpointError(f"{path}: neither an exported model ({MODEL_FILE}) nor a training run "
+                              f"({CONFIG_FILE})")
+    if not best and (path / MODEL_DIR / MODEL_FILE).is_file():
+        params, model_config, info = load_model(path / MODEL_DIR)
+        return params, model_config, {**info, "source": str(path / MODEL_DIR)}
+    values = read_json(path / CONFIG_FILE, "configuration of the run")
+    model_config, train_config, normalization = configs_from(values, str(path / CONFIG_FILE))
+    checkpointer = Checkpointer(path, config=values)
+    try:
+        state, _, extra = checkpointer.restore(restore_template(model_config, train_config, normalization),
+                                               jax.random.key(0), best=best)
+    finally:
+        checkpointer.close()
+    where = path / (BEST_DIR if best else CHECKPOINT_DIR) / str(int(state.step))
+    return state.params, model_config, {"model": model_config.to_dict(), "source": str(where),
+                                        "record": {"steps": int(state.step), "train": train_config.to_dict(),
+                                                   "validation": extra.get("validation", {})}}

@@ -1,0 +1,54 @@
+"""Helpers shared by the subcommands: loading a model, formatting numbers."""
+
+from __future__ import annotations
+
+from dispgns.cli import CLIError
+
+
+def add_model_argument(parser) -> None:
+    parser.add_argument("--model", metavar="PATH",
+                        help="an exported model directory (model.json) or a training run directory "
+                             "(default: the model shipped with dispgns)")
+    parser.add_argument("--best", action="store_true",
+                        help="with a run directory: the best checkpoint by validation instead of the final model")
+
+
+def load_model_argument(args):
+    """``(params, model_config, info)`` for ``--model``/``--best`` (the shipped model by default)."""
+    from dispgns.training.checkpoint import CheckpointError, load_params
+
+    if args.model is None:
+        if args.best:
+            raise CLIError("--best needs --model RUN (a training run directory)")
+        from dispgns.pretrained import load_pretrained
+
+        try:
+            return load_pretrained()
+        except (FileNotFoundError, CheckpointError) as error:
+            raise CLIError(f"the shipped model cannot be loaded: {error}; pass --model PATH") from None
+    try:
+        return load_params(args.model, best=args.best)
+    except CheckpointError as error:
+        raise CLIError(str(error)) from None
+
+
+def fmt(value, digits: int = 3) -> str:
+    """A number for tables: ``1.23e-04`` when small or large, ``2.61`` otherwise, ``-`` when missing."""
+    if value is None:
+        return "-"
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)
+    value = float(value)
+    if value != value:
+        return "nan"
+    if value != 0 and (abs(value) < 1e-2 or abs(value) >= 1e4):
+        return f"{value:.{digits - 1}e}"
+    return f"{value:.{digits}g}"
+
+
+def mean_std(summary, key: str) -> str:
+    """``mean ± std`` of a :func:`dispgns.metrics.summarize` entry, ``-`` when missing."""
+    entry = summary.get(key)
+    if not isinstance(entry, dict) or not isinstance(entry.get("mean"), float):
+        return "-"
+    return f"{fmt(entry['mean'])} ± {fmt(entry['std'], 2)}"

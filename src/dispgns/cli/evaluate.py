@@ -1,0 +1,127 @@
+"""``dispgns evaluate``: full rollouts of a model on dataset splits, metrics and references."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from dispgns.cli import CLIError
+from dispgns.cli._common import add_model_argument, fmt, load_model_argument, mean_std
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "evaluate",
+        help="roll out a model on test splits and score it",
+        description="Roll the model out over every trajectory of the chosen splits (all frames after the "
+                    "first C), score each rollout (rollout MSE, RMSE in mm and diameters, horizons, wall "
+                    "crossings, overlaps, kinetic energy, mean height) next to the constant-velocity baseline "
+                    "and the chaos floor, and write OUT/metrics.json, OUT/predictions/<split>.h5 and "
+                    "OUT/error_curves_<split>.png.",
+    )
+    add_model_argument(parser)
+    parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory")
+    parser.add_argument("--splits", nargs="+", default=["test", "test_unseen"], metavar="SPLIT",
+                        help="splits to evaluate (default: test test_unseen)")
+    parser.add_argument("--out", default="dispgns-eval", metavar="DIR", help="output directory (default ./dispgns-eval)")
+    parser.add_argument("--frames", type=int, metavar="T", help="evaluate the first T frames only (default: all)")
+    parser.add_argument("--max-trajectories", type=int, metavar="K", help="only the first K trajectories per split")
+    parser.add_argument("--batch-size", type=int, default=6, metavar="B", help="trajectories rolled out together")
+    parser.add_argument("--no-chaos", action="store_true", help="skip the chaos-floor reference")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from dispgns.data import DatasetError, Trajectory, load_dataset, write_split
+    from dispgns.data.format import split_filename
+    from dispgns.evaluation import evaluate_trajectories
+    from dispgns.render import plot_rollout_errors
+    from dispgns.training.checkpoint import write_json
+
+    params, model_config, info = load_model_argument(args)
+    try:
+        metadata, splits = load_dataset(args.data, args.splits)
+    except DatasetError as error:
+        raise CLIError(str(error)) from None
+    if metadata.dim != model_config.dim:
+        raise CLIError(f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim "
+                       f"{model_config.dim}")
+    c = model_config.input_sequence_length
+    if args.frames is not None and not c < args.frames <= metadata.sequence_length:
+        raise CLIError(f"--frames {args.frames}: expected C = {c} < T <= {metadata.sequence_length}")
+    if args.batch_size < 1 or (args.max_trajectories is not None and args.max_trajectories < 1):
+        raise CLIError("--batch-size and --max-trajectories must be >= 1")
+    out = Path(args.out)
+    try:
+        (out / "predictions").mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
+
+    frames = args.frames or metadata.sequence_length
+    report = {"model": {"source": info.get("source"), "config": model_config.to_dict(),
+                        "record": info.get("record", {})},
+              "dataset": {"path": str(Path(args.data).absolute()), "preset": metadata.preset, "seed": metadata.seed},
+              "frames": frames, "splits": {}}
+    for split, trajectories in splits.items():
+        trajectories = trajectories[:args.max_trajectories] if args.max_trajectories else trajectories
+        total = len(trajectories) * (frames - c)
+        bar = tqdm(total=total, desc=f"{split} rollouts", unit=" steps", file=sys.stderr, dynamic_ncols=True,
+                   disable=args.no_progress, leave=False)
+
+        def progress(stage, amount, bar=bar):
+            if stage == "rollout":
+                bar.update(amount)
+            else:
+                bar.set_description(f"{split} chaos floor done")
+
+        chaos = not args.no_chaos and metadata.has_initial_state
+        try:
+            result = evaluate_trajectories(params, trajectories, model_config=model_config,
+                                           box_half_size=metadata.box_half_size, frame_dt=metadata.frame_dt,
+                                           physics_config=metadata.physics_config, save_every=metadata.save_every,
+                                           chaos_floor=chaos, chaos_x64=metadata.precision == "float64",
+                                           n_frames=frames, batch_size=args.batch_size, progress=progress)
+        finally:
+            bar.close()
+        predicted = [Trajectory(position=p, radius=t.radius, attrs={"source_index": k, "split": split,
+                                                                     "model": str(info.get("source"))})
+                     for k, (p, t) in enumerate(zip(result["predictions"], trajectories))]
+        write_split(out / "predictions" / split_filename(split), predicted, predicted=True)
+        plot_rollout_errors(result["summary"], frame_dt=metadata.frame_dt, title=f"{split}: rollout error",
+                            path=out / f"error_curves_{split}.png")
+        report["splits"][split] = {"summary": result["summary"], "trajectories": result["metrics"],
+                                   "chaos_floor": result["chaos_floor"]}
+    write_json(out / "metrics.json", report)
+    print(table(report))
+    print(f"wrote {out / 'metrics.json'}, {out / 'predictions'}/*.h5 and {out}/error_curves_*.png")
+    return 0
+
+
+ROWS = (("rollout MSE", "mse"), ("RMSE (mm)", "rmse_mm"), ("RMSE (diameters)", "rmse_diameters"),
+        ("MSE h10", "mse_h10"), ("MSE h100", "mse_h100"), ("constant velocity MSE", "constant_velocity_mse"),
+        ("chaos floor MSE", "chaos_floor_mse"), ("model / constant velocity", "mse_over_constant_velocity"),
+        ("wall crossings (particle-frames)", "wall_violations_total"), ("overlapping pairs (sum)", "overlaps_total"),
+        ("overlapping pairs, truth", "overlaps_truth_total"))
+
+
+def table(report) -> str:
+    """A Markdown table: one column per split, mean ± std over its trajectories."""
+    splits = list(report["splits"])
+    lines = ["| metric | " + " | ".join(f"{s} ({report['splits'][s]['summary']['n_trajectories']})"
+                                      for s in splits) + " |",
+             "| --- |" + " --- |" * len(splits)]
+    for label, key in ROWS:
+        cells = []
+        for s in splits:
+            summary = report["splits"][s]["summary"]
+            if key.endswith("_total"):
+                entry = summary.get(key)
+                cells.append("-" if entry is None else fmt(int(round(entry["mean"] * entry["n"]))))
+            else:
+                cells.append(mean_std(summary, key))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

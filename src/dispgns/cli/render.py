@@ -1,0 +1,107 @@
+"""``dispgns render``: side-by-side animation (ground truth | prediction) and a still frame grid."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from dispgns.cli import CLIError
+from dispgns.cli._common import add_model_argument, load_model_argument
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render",
+        help="animate ground truth next to a model's rollout",
+        description="Draw one trajectory of a dataset split next to a prediction: either rolled out here by "
+                    "the model (--model, default the shipped one) or read from a predictions file written by "
+                    "dispgns evaluate (--predictions). Writes OUT.gif (and OUT.mp4 when ffmpeg is available) "
+                    "and OUT_grid.png, a still grid of a few frames.",
+    )
+    parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory")
+    parser.add_argument("--split", default="test_unseen", help="split (default test_unseen)")
+    parser.add_argument("--index", type=int, default=0, help="trajectory index in the split (default 0)")
+    add_model_argument(parser)
+    parser.add_argument("--predictions", metavar="FILE.h5",
+                        help="a predictions file from dispgns evaluate (instead of rolling out a model)")
+    parser.add_argument("--out", default="dispgns-render/rollout", metavar="PREFIX",
+                        help="output prefix (default dispgns-render/rollout): PREFIX.gif, PREFIX.mp4, PREFIX_grid.png")
+    parser.add_argument("--start", type=int, default=0, help="first frame of the animation")
+    parser.add_argument("--stop", type=int, help="frame after the last one of the animation (default: the end)")
+    parser.add_argument("--stride", type=int, default=2, help="draw every STRIDE-th frame (default 2)")
+    parser.add_argument("--fps", type=float, default=25.0, help="frames per second of the animation")
+    parser.add_argument("--grid-frames", metavar="F,F,...",
+                        help="frames of the still grid (negative: from the end; default: 5 evenly spaced)")
+    parser.add_argument("--no-mp4", action="store_true", help="GIF only")
+    parser.set_defaults(func=run)
+
+
+def _frames(text: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise CLIError(f"--grid-frames {text!r}: expected comma-separated frame numbers") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from dispgns.data import DatasetError, load_dataset, read_split
+    from dispgns.evaluation import predict_trajectories
+    from dispgns.render import frame_grid, save_rollout_animation
+
+    try:
+        metadata, splits = load_dataset(args.data, [args.split])
+    except DatasetError as error:
+        raise CLIError(str(error)) from None
+    trajectories = splits[args.split]
+    if not 0 <= args.index < len(trajectories):
+        raise CLIError(f"--index {args.index}: {args.split} has trajectories 0..{len(trajectories) - 1}")
+    if args.stride < 1 or args.fps <= 0:
+        raise CLIError("--stride must be >= 1 and --fps > 0")
+    truth = trajectories[args.index]
+    frames = truth.position.shape[0]
+    grid_frames = (_frames(args.grid_frames) if args.grid_frames
+                   else np.linspace(0, frames - 1, 5).round().astype(int).tolist())
+    for f in grid_frames:
+        if not -frames <= f < frames:
+            raise CLIError(f"--grid-frames: frame {f} is outside 0..{frames - 1}")
+    if not 0 <= args.start < frames or (args.stop is not None and not args.start < args.stop <= frames):
+        raise CLIError(f"--start/--stop: expected 0 <= start < stop <= {frames}")
+    input_frames = None
+    if args.predictions:
+        if args.model or args.best:
+            raise CLIError("give either --predictions or --model, not both")
+        try:
+            predicted = read_split(args.predictions)
+        except DatasetError as error:
+            raise CLIError(str(error)) from None
+        if args.index >= len(predicted):
+            raise CLIError(f"{args.predictions}: holds {len(predicted)} trajectories, no index {args.index}")
+        prediction = predicted[args.index].position
+        if prediction.shape != truth.position.shape:
+            raise CLIError(f"{args.predictions}: trajectory {args.index} has shape {prediction.shape}, the "
+                           f"dataset's has {truth.position.shape}: not a prediction of this trajectory")
+    else:
+        params, model_config, _ = load_model_argument(args)
+        input_frames = model_config.input_sequence_length
+        prediction = predict_trajectories(params, [truth], model_config=model_config)[0]
+    truth_frames = np.asarray(truth.position)
+    prediction = np.asarray(prediction)
+    prefix = Path(args.out)
+    if prefix.suffix.lower() in (".gif", ".mp4", ".png"):
+        prefix = prefix.with_suffix("")
+    try:
+        prefix.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CLIError(f"cannot write to {prefix.parent}: {error.strerror or error}") from None
+    common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.box_half_size)
+    files = save_rollout_animation(str(prefix), truth_frames, prediction, np.asarray(truth.radius),
+                                   mp4=not args.no_mp4, input_frames=input_frames or 6, start=args.start,
+                                   stop=args.stop, stride=args.stride, fps=args.fps, **common)
+    grid = f"{prefix}_grid.png"
+    frame_grid(truth_frames, prediction, np.asarray(truth.radius), grid_frames, path=grid, **common)
+    written = [files["gif"]] + ([files["mp4"]] if files["mp4"] else []) + [grid]
+    print("wrote " + ", ".join(written) + (f" (mp4 skipped: {files['mp4_skipped']})"
+                                           if files["mp4_skipped"] and not args.no_mp4 else ""))
+    return 0
