@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from dispgns._config import config_from_mapping
 from dispgns.features import edge_feature_size, node_feature_size
 from dispgns.graph import Bounds, as_bounds
 
@@ -123,15 +124,11 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "ModelConfig":
-        """Build a config from a mapping; unknown keys are an error."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown ModelConfig field(s) {unknown}; expected a subset of {sorted(known)}")
+        """Build a config from a mapping (numbers may be given as text); unknown keys are an error."""
         values = dict(values)
-        if "bounds" in values:
+        if values.get("bounds") is not None:
             values["bounds"] = tuple(tuple(float(v) for v in b) for b in values["bounds"])
-        return cls(**values)
+        return config_from_mapping(cls, values)
 
 
 class Linear(nn.Module):

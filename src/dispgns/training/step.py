@@ -30,6 +30,7 @@ import optax
 from flax import struct
 from jax import lax
 
+from dispgns._config import config_from_mapping
 from dispgns.data.examples import Batch
 from dispgns.model import ModelConfig, identity_normalization, init_params
 from dispgns.simulator import build_graph, network_output_batch, one_step, sanitize
@@ -107,12 +108,8 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "TrainConfig":
-        """Build a config from a mapping; unknown keys are an error."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown TrainConfig field(s) {unknown}; expected a subset of {sorted(known)}")
-        return cls(**values)
+        """Build a config from a mapping (numbers may be given as text); unknown keys are an error."""
+        return config_from_mapping(cls, values)
 
 
 def learning_rate_schedule(train_config: TrainConfig):

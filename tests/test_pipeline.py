@@ -1,0 +1,122 @@
+"""End to end on the tiny preset: train -> evaluate -> render -> demo, with the documented files."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+from PIL import Image
+
+from dispgns.cli import main
+from dispgns.data import load_dataset, read_split
+
+TRAIN = ["--set", "model.latent_size=16", "--set", "model.hidden_size=16", "--set", "model.message_passing_steps=2",
+         "--set", "train.learning_rate=3e-3", "--set", "train.lr_decay_steps=400", "--set",
+         "train.min_learning_rate=1e-5", "--set", "train.validate_every=200", "--set",
+         "train.validation_rollout_frames=30", "--steps", "400", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_dataset, tmp_path_factory):
+    run = tmp_path_factory.mktemp("pipeline") / "run"
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), *TRAIN]) == 0
+    return run
+
+
+def test_trained_model_beats_constant_velocity_on_training_trajectories(tiny_dataset, trained, tmp_path, capsys):
+    out = tmp_path / "eval-train"
+    assert main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "train",
+                 "--out", str(out), "--no-chaos", "--no-progress"]) == 0
+    report = json.loads((out / "metrics.json").read_text())
+    for m in report["splits"]["train"]["trajectories"]:
+        assert m["finite"] and m["mse"] < m["constant_velocity_mse"], (m["mse"], m["constant_velocity_mse"])
+    assert "| rollout MSE |" in capsys.readouterr().out
+
+
+def test_evaluate_writes_metrics_predictions_and_plots(tiny_dataset, trained, tmp_path):
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--out", str(out),
+                 "--no-progress"]) == 0
+    report = json.loads((out / "metrics.json").read_text())
+    _, splits = load_dataset(tiny_dataset, ["test", "test_unseen"])
+    assert set(report["splits"]) == {"test", "test_unseen"}
+    assert report["model"]["source"].endswith("model") and report["frames"] == 60
+    for split, trajectories in splits.items():
+        entry = report["splits"][split]
+        assert entry["chaos_floor"] and entry["summary"]["n_trajectories"] == len(trajectories)
+        metrics = entry["trajectories"][0]
+        assert len(metrics["per_frame_mse"]) == 60 - 6
+        for key in ("mse", "rmse_mm", "rmse_diameters", "mse_h1", "mse_h10", "mse_h50", "constant_velocity_mse",
+                    "chaos_floor_mse", "wall_violations_total", "overlaps_total", "kinetic_energy_relative_error",
+                    "mean_height_error"):
+            assert key in metrics, key
+        assert metrics["mse_h100"] is None  # longer than the 54 predicted frames: reported as missing
+        assert 0 <= metrics["chaos_floor_mse"] < metrics["constant_velocity_mse"]
+        assert np.isclose(metrics["rmse_mm"], np.sqrt(metrics["mse"]) * 0.1 * 1e3)
+        predicted = read_split(out / "predictions" / f"{split}.h5")
+        assert len(predicted) == len(trajectories)
+        for p, t in zip(predicted, trajectories):
+            assert p.position.shape == t.position.shape
+            np.testing.assert_array_equal(p.position[:6], t.position[:6])
+            np.testing.assert_array_equal(p.radius, t.radius)
+        with h5py.File(out / "predictions" / f"{split}.h5") as f:
+            assert f.attrs["predicted"]
+        assert Image.open(out / f"error_curves_{split}.png").size[0] > 300
+
+
+def test_render_from_predictions_and_from_model(tiny_dataset, trained, tmp_path, capsys):
+    evaluated = tmp_path / "eval"
+    assert main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "test",
+                 "--out", str(evaluated), "--no-chaos", "--no-progress"]) == 0
+    prefix = tmp_path / "pictures" / "test0"
+    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--predictions",
+                 str(evaluated / "predictions" / "test.h5"), "--out", str(prefix), "--stride", "3"]) == 0
+    gif = Image.open(f"{prefix}.gif")
+    assert gif.n_frames == 20  # 60 frames, every 3rd
+    assert (tmp_path / "pictures" / "test0.mp4").stat().st_size > 1000
+    assert Image.open(f"{prefix}_grid.png").size[0] > 500
+    model_prefix = tmp_path / "pictures" / "model"
+    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--model", str(trained), "--out",
+                 str(model_prefix), "--start", "10", "--stop", "30", "--no-mp4"]) == 0
+    assert Image.open(f"{model_prefix}.gif").n_frames == 10
+    assert not (tmp_path / "pictures" / "model.mp4").exists()
+    # The same rollout, whether rendered from the file or from the model.
+    a, b = Image.open(f"{prefix}_grid.png"), Image.open(f"{model_prefix}_grid.png")
+    assert np.array_equal(np.asarray(a), np.asarray(b))
+    capsys.readouterr()
+    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--index", "5", "--model",
+                 str(trained)]) == 2
+    assert "--index 5: test has trajectories 0..0" in capsys.readouterr().err
+    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--model", str(trained),
+                 "--grid-frames", "0,99"]) == 2
+    assert "frame 99 is outside 0..59" in capsys.readouterr().err
+
+
+def test_demo_writes_its_files(trained, tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--model", str(trained), "--out", str(out), "--frames", "40", "--seed", "3",
+                 "--stride", "4", "--radii", "4,6,8,10"]) == 0
+    printed = capsys.readouterr().out
+    assert "seed 3" in printed and "rollout MSE" in printed and "constant-velocity baseline" in printed
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["seed"] == 3 and report["radii_mm"] == [4.0, 6.0, 8.0, 10.0] and report["frames"] == 40
+    assert len(report["metrics"]["per_frame_mse"]) == 34 and "chaos_floor_mse" in report["metrics"]
+    assert {"physics_s", "gnn_rollout_s"} <= set(report["timings"])
+    assert Image.open(out / "rollout.gif").n_frames == 10
+    for name in ("rollout.mp4", "rollout_grid.png", "error_curve.png"):
+        assert (out / name).stat().st_size > 1000, name
+
+
+def test_bad_inputs_exit_with_a_message(tiny_dataset, trained, tmp_path, capsys):
+    cases = [
+        (["evaluate", "--model", str(tmp_path), "--data", str(tiny_dataset)], "neither an exported model"),
+        (["evaluate", "--model", str(trained), "--data", str(tmp_path)], "metadata.json: not found"),
+        (["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "nope"], "no split 'nope'"),
+        (["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--frames", "3"], "--frames 3"),
+        (["render", "--data", str(tiny_dataset), "--predictions", str(tmp_path / "none.h5")], "file not found"),
+        (["demo", "--model", str(trained), "--radii", "2,x"], "--radii '2,x'"),
+        (["demo", "--best"], "--best needs --model"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        assert message in capsys.readouterr().err, argv
