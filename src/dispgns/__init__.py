@@ -35,7 +35,7 @@ __all__ = [
 # Learned simulator core: graph network, one-step prediction, rollout, training step.
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig, init_params
-from dispgns.simulator import predict_acceleration, predict_position, rollout
+from dispgns.simulator import predict_acceleration, predict_position, rollout, rollout_batch
 from dispgns.training import (
     TrainConfig,
     TrainState,
@@ -46,8 +46,14 @@ from dispgns.training import (
 )
 from dispgns.data.examples import Batch, BatchStream
 
+# Evaluation, checkpoints and the shipped model.
+from dispgns.evaluation import evaluate_trajectories
+from dispgns.pretrained import load_pretrained
+from dispgns.training.checkpoint import export_model, load_model, load_params
+
 __all__ += [
     "GraphCapacity", "ModelConfig", "init_params", "predict_acceleration", "predict_position", "rollout",
-    "TrainConfig", "TrainState", "compute_normalization", "create_train_state", "make_optimizer", "train_step",
-    "Batch", "BatchStream",
+    "rollout_batch", "TrainConfig", "TrainState", "compute_normalization", "create_train_state", "make_optimizer",
+    "train_step", "Batch", "BatchStream", "evaluate_trajectories", "load_pretrained", "export_model", "load_model",
+    "load_params",
 ]
