@@ -150,7 +150,8 @@ def test_layer_norm_matches_flax():
 
 def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
     from dispgns.graph import GraphCapacity
-    from dispgns.simulator import build_graph, network_output, network_output_batch, sanitize
+    from dispgns.simulator import (build_graph, merge_graphs, merged_edge_count, network_output, network_output_batch,
+                                   sanitize)
 
     x, a = inputs
     n2 = N - 9
@@ -160,13 +161,24 @@ def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
     cap = GraphCapacity(CAPACITY)
     graphs = jax.vmap(lambda x, m: build_graph(x[-1], m, cap, TINY))(xs, mask)
 
-    @jax.jit
-    def both(p, xs, radii, graphs):
-        merged = network_output_batch(p, xs, radii, graphs, model_config=TINY)
+    real = int(merged_edge_count(graphs, N))
+    assert real < 2 * graphs.senders.shape[1]
+
+    @functools.partial(jax.jit, static_argnums=4)
+    def both(p, xs, radii, graphs, budget):
+        merged = network_output_batch(p, xs, radii, graphs, model_config=TINY, edge_budget=budget)
         separate = jnp.stack([network_output(p, xs[k], radii[k], jax.tree_util.tree_map(lambda g: g[k], graphs),
                                              model_config=TINY) for k in range(2)])
         return merged, separate
 
-    merged, separate = both(params, xs, radii, graphs)
-    np.testing.assert_allclose(np.asarray(merged[0]), np.asarray(separate[0]), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(merged[1, :n2]), np.asarray(separate[1, :n2]), rtol=1e-5, atol=1e-6)
+    # Without compaction, with a budget that just fits the real edges, and with a generous one.
+    for budget in (None, real, real + 100):
+        merged, separate = both(params, xs, radii, graphs, budget)
+        np.testing.assert_allclose(np.asarray(merged[0]), np.asarray(separate[0]), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(merged[1, :n2]), np.asarray(separate[1, :n2]), rtol=1e-5, atol=1e-6)
+    senders, receivers = merge_graphs(graphs, N, real)
+    assert np.all(np.diff(np.asarray(receivers)) >= 0)
+    # A budget one edge short loses the last edge (a padding particle's self-loop here): the count
+    # tells the caller, who must not use the result.
+    merged, _ = both(params, xs, radii, graphs, real - 1)
+    assert not np.allclose(np.asarray(merged[1]), np.asarray(separate[1]), rtol=1e-5, atol=1e-6)

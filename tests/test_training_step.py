@@ -158,3 +158,29 @@ def test_pushforward_and_unstandardised_recipe(trajectories):
                    jax.random.key(0))
     with pytest.raises(ValueError, match="standardize"):
         create_train_state(jax.random.key(0), TINY, TrainConfig())
+
+
+def test_compacted_batches_train_exactly_like_padded_ones(trajectories):
+    kwargs = dict(input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=3, pushforward_steps=1)
+    compact = BatchStream(trajectories, **kwargs)
+    padded = BatchStream(trajectories, compact_edges=False, **kwargs)
+    tc = TrainConfig(pushforward_steps=1, learning_rate=1e-3)
+    state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories))
+    a, b = compact.batch(4), padded.batch(4)
+    np.testing.assert_array_equal(a.example, b.example)
+    real = sum(int(compact.pairs[i]) for i in compact.batch_examples(4)) + 2 * a.node_budget
+    assert a.edge_budget is not None and b.edge_budget is None
+    assert real <= a.edge_budget < 2 * (a.capacity.edges + a.node_budget)
+    new_a, metrics_a = train_step(state, a, jax.random.key(5))
+    new_b, metrics_b = train_step(state, b, jax.random.key(5))
+    assert not bool(metrics_a["overflow"]) and not bool(metrics_b["overflow"])
+    np.testing.assert_allclose(float(metrics_a["loss"]), float(metrics_b["loss"]), rtol=1e-5)
+    for x, y in zip(jax.tree_util.tree_leaves(new_a.params), jax.tree_util.tree_leaves(new_b.params)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
+    # Too small a budget: the step refuses, the checked step grows the budget and gets the same result.
+    tight = a.with_capacity(a.capacity, 64)
+    _, metrics = train_step(state, tight, jax.random.key(5))
+    assert bool(metrics["overflow"])
+    grown, metrics, used = train_step_checked(state, tight, jax.random.key(5), grow=compact.grow)
+    assert used.edge_budget > 64 and not bool(metrics["overflow"])
+    np.testing.assert_allclose(float(metrics["loss"]), float(metrics_a["loss"]), rtol=1e-5)

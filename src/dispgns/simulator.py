@@ -108,34 +108,76 @@ def network_output(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph
     return apply_network(params["network"], nodes, edges, graph.senders, graph.receivers, model_config=c)
 
 
+def merged_edge_count(graphs: Graph, n: int) -> jnp.ndarray:
+    """Number of real edges (self-loops included) of ``B`` graphs ``(B, E)`` over ``n`` node slots: ``()`` int32."""
+    return jnp.sum(graphs.receivers < n, dtype=jnp.int32)
+
+
+def merge_graphs(graphs: Graph, n: int, edge_budget: int | None = None):
+    """``B`` graphs as one disjoint graph over ``B (n + 1)`` nodes (one dummy node per example).
+
+    Example ``b``'s node ``i`` becomes node ``b (n + 1) + i``; unused edge
+    slots point at the example's dummy node ``b (n + 1) + n``. With an
+    ``edge_budget`` the real edges are moved to the front of a list of that
+    static length (in order, so receivers stay sorted) and the rest of it
+    points at the last dummy node: the per-edge work then scales with the
+    edges the batch has, not with ``B`` times the largest example's capacity.
+
+    Args:
+      graphs: :class:`Graph` with ``(B, E)`` arrays.
+      n: node slots per example.
+      edge_budget: static total edge slots, or ``None`` (``B E`` slots, no
+        compaction).
+
+    Returns:
+      ``(senders, receivers)``, each ``(B E,)`` or ``(edge_budget,)`` int32.
+      Edges beyond ``edge_budget`` are dropped: check
+      :func:`merged_edge_count` ``<= edge_budget`` (the training step does).
+    """
+    b, e = graphs.senders.shape
+    offset = (jnp.arange(b, dtype=jnp.int32) * (n + 1))[:, None]
+    senders = (jnp.minimum(graphs.senders, n) + offset).reshape(b * e)
+    receivers = (jnp.minimum(graphs.receivers, n) + offset).reshape(b * e)
+    if edge_budget is None:
+        return senders, receivers
+    real = (graphs.receivers < n).reshape(b * e)
+    slot = jnp.where(real, jnp.cumsum(real, dtype=jnp.int32) - 1, edge_budget)
+    dummy = jnp.full((edge_budget,), b * (n + 1) - 1, jnp.int32)
+    compact = lambda values: dummy.at[slot].set(values, mode="drop", indices_are_sorted=True)
+    return compact(senders), compact(receivers)
+
+
 def network_output_batch(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graphs: Graph, *,
-                         model_config: ModelConfig) -> jnp.ndarray:
+                         model_config: ModelConfig, edge_budget: int | None = None) -> jnp.ndarray:
     """:func:`network_output` for ``B`` examples at once, as one disjoint graph.
 
     Merging the examples (rather than vmapping the network) keeps gathers
     and scatters plain and the per-edge matmuls large. Each example gets one
     extra dummy node that absorbs its unused edge slots, so receivers stay
-    sorted and every index is in range.
+    sorted and every index is in range (see :func:`merge_graphs`).
 
     Args:
       position_seq: ``(B, C, N, D)`` sanitised inputs; radius: ``(B, N)``.
       graphs: :class:`Graph` with ``(B, E)`` arrays (e.g. vmapped :func:`build_graph`).
+      edge_budget: static total edge slots of the merged graph (``None``:
+        ``B E``); the caller must check :func:`merged_edge_count` against it.
 
     Returns:
       ``(B, N, D)`` standardised network output.
     """
     c = model_config
-    b, _, n, _ = position_seq.shape
-    e = graphs.senders.shape[1]
+    b, steps, n, dim = position_seq.shape
     norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
     nodes = jax.vmap(lambda x, a: _standardized_nodes(x, a, norm, c))(position_seq, radius)
-    edges = jax.vmap(features_lib.edge_features)(position_seq, radius, graphs.senders, graphs.receivers)
     nodes = jnp.concatenate([nodes, jnp.zeros((b, 1, nodes.shape[-1]), nodes.dtype)], axis=1)
-    offset = (jnp.arange(b, dtype=jnp.int32) * (n + 1))[:, None]
-    senders = (jnp.minimum(graphs.senders, n) + offset).reshape(b * e)
-    receivers = (jnp.minimum(graphs.receivers, n) + offset).reshape(b * e)
-    out = apply_network(params["network"], nodes.reshape(b * (n + 1), -1), edges.reshape(b * e, -1), senders,
-                        receivers, model_config=c)
+    senders, receivers = merge_graphs(graphs, n, edge_budget)
+    # Edge features on the merged node arrays (dummy nodes: position 0, radius 1: finite features).
+    flat_x = jnp.concatenate([position_seq, jnp.zeros((b, steps, 1, dim), position_seq.dtype)], axis=2)
+    flat_x = jnp.moveaxis(flat_x, 1, 0).reshape(steps, b * (n + 1), dim)
+    flat_a = jnp.concatenate([radius, jnp.ones((b, 1), radius.dtype)], axis=1).reshape(b * (n + 1))
+    edges = features_lib.edge_features(flat_x, flat_a, senders, receivers)
+    out = apply_network(params["network"], nodes.reshape(b * (n + 1), -1), edges, senders, receivers,
+                        model_config=c)
     return out.reshape(b, n + 1, -1)[:, :n]
 
 
@@ -341,23 +383,29 @@ def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -
     return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)
 
 
-def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig):
+def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig,
+                   edge_budget: int | None = None):
     """:func:`one_step` for ``B`` trajectories at once, evaluated as one disjoint graph.
 
     Args:
       position_seq: ``(B, C, N, D)``; radius, mask: ``(B, N)``.
+      edge_budget: static total edge slots of the merged graph (see
+        :func:`merge_graphs`); exceeding it sets every overflow flag.
 
     Returns:
       ``(acceleration (B, N, D), next position (B, N, D), overflow (B,))``.
     """
     x, a = jax.vmap(lambda p, r, m: sanitize(p, r, m, model_config))(position_seq, radius, mask)
     graphs = jax.vmap(lambda p, m: build_graph(p, m, capacity, model_config))(x[:, -1], mask)
-    output = network_output_batch(params, x, a, graphs, model_config=model_config)
+    output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
     acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
     acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[:, -1]
     next_position = jnp.where(mask[..., None], last + (last - position_seq[:, -2]) + acc, last)
-    return acc, next_position, graphs.overflow
+    overflow = graphs.overflow
+    if edge_budget is not None:
+        overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > edge_budget)
+    return acc, next_position, overflow
 
 
 @functools.partial(jax.jit, static_argnames=("length", "capacity", "model_config"))

@@ -44,6 +44,9 @@ class Batch:
       capacity: static :class:`~dispgns.graph.GraphCapacity` of each
         example's graph (ordered pairs ``s != r``), with head-room for the
         noise.
+      edge_budget: static edge slots of the merged graph of the whole batch
+        (real edges, self-loops of every particle slot included), or
+        ``None``: ``B`` times the slots of one example's graph.
     """
 
     position: jnp.ndarray
@@ -51,6 +54,7 @@ class Batch:
     mask: jnp.ndarray
     example: jnp.ndarray
     capacity: GraphCapacity = struct.field(pytree_node=False)
+    edge_budget: int | None = struct.field(pytree_node=False, default=None)
 
     @property
     def batch_size(self) -> int:
@@ -60,9 +64,9 @@ class Batch:
     def node_budget(self) -> int:
         return int(self.position.shape[2])
 
-    def with_capacity(self, capacity: GraphCapacity) -> "Batch":
-        """The same examples with another graph capacity (e.g. after an overflow)."""
-        return self.replace(capacity=capacity)
+    def with_capacity(self, capacity: GraphCapacity, edge_budget: int | None | str = "same") -> "Batch":
+        """The same examples with another graph capacity (and edge budget), e.g. after an overflow."""
+        return self.replace(capacity=capacity, edge_budget=self.edge_budget if edge_budget == "same" else edge_budget)
 
 
 class ExampleIndex(NamedTuple):
@@ -110,8 +114,13 @@ class BatchStream:
       shuffle: ``False`` keeps examples in order (e.g. for validation).
       node_budgets: allowed particle-slot counts; ``None``: one budget, the
         largest ``N`` rounded up to a multiple of 8.
-      num_capacity_levels: how many graph capacities to derive from the
-        quantiles of the examples' pair counts (each costs one compilation).
+      num_capacity_levels: how many graph sizes to derive from quantiles
+        (each costs one compilation): of the batches' total edge counts
+        with ``compact_edges``, else of the examples' pair counts.
+      compact_edges: give every example one graph capacity (the largest)
+        and every batch an ``edge_budget`` that fits its own edges, so that
+        the per-edge work follows the batch's real edges (default); ``False``:
+        no budget, example capacities from the pair-count quantiles.
       capacity_margin, capacity_extra: head-room of a capacity over the most
         pairs found in the example's graph frames: ``pairs * (1 + margin) +
         extra`` (the training noise moves pairs across the radius).
@@ -127,7 +136,7 @@ class BatchStream:
                  connectivity_radius: float, seed: int = 0, pushforward_steps: int = 0, shuffle: bool = True,
                  node_budgets: Sequence[int] | None = None, num_capacity_levels: int = 4,
                  capacity_margin: float = 0.03, capacity_extra: int = 64, use_cell_list: bool | None = None,
-                 bounds: Bounds = DEFAULT_BOUNDS):
+                 bounds: Bounds = DEFAULT_BOUNDS, compact_edges: bool = True):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.input_sequence_length = int(input_sequence_length)
@@ -170,8 +179,18 @@ class BatchStream:
         per_frame = [host_count_pairs(x, connectivity_radius=self.connectivity_radius) for x in self.positions]
         self.pairs = np.array([per_frame[t][s + c - 1:s + c + self.pushforward_steps].max()
                                for t, s in zip(self.index.trajectory, self.index.start)], np.int64)
-        quantiles = np.quantile(self.pairs, np.arange(1, num_capacity_levels + 1) / num_capacity_levels)
-        self.capacity_levels = sorted({self._required(q) for q in quantiles} | {self._required(self.pairs.max())})
+        levels = np.arange(1, num_capacity_levels + 1) / num_capacity_levels
+        self.compact_edges = bool(compact_edges)
+        self.edge_levels = None
+        if self.compact_edges:
+            self.capacity_levels = [self._required(self.pairs.max())]
+            # Budgets from the batches of the first epochs (the order is fixed by the seed).
+            sample = range(min(4 * self.batches_per_epoch, 4096))
+            needs = [self._edge_need(self.batch_examples(i)) for i in sample]
+            self.edge_levels = sorted({_round_up(q, 64) for q in np.quantile(needs, levels)} | {max(needs)})
+        else:
+            quantiles = np.quantile(self.pairs, levels)
+            self.capacity_levels = sorted({self._required(q) for q in quantiles} | {self._required(self.pairs.max())})
         self.cell_capacity = None
         if use_cell_list is None:
             use_cell_list = self.node_budgets[-1] >= CELL_LIST_MIN_PARTICLES
@@ -201,6 +220,23 @@ class BatchStream:
     def _required(self, pairs: float) -> int:
         return _round_up(pairs * (1.0 + self.capacity_margin) + self.capacity_extra, 64)
 
+    def _edge_need(self, ids) -> int:
+        """Edge slots the merged graph of examples ``ids`` needs: pairs with head-room plus every self-loop."""
+        pairs = self.pairs[np.asarray(ids, np.int64)]
+        return _round_up(float(np.sum(pairs * (1.0 + self.capacity_margin) + self.capacity_extra))
+                         + len(pairs) * self._node_budget(ids), 64)
+
+    def _node_budget(self, ids) -> int:
+        n_max = max(self.positions[t].shape[1] for t in self.index.trajectory[np.asarray(ids, np.int64)])
+        return next(b for b in self.node_budgets if b >= n_max)
+
+    def edge_budget_for(self, ids) -> int | None:
+        """Smallest edge-budget level that holds the merged graph of examples ``ids`` (``None`` without compaction)."""
+        if not self.compact_edges:
+            return None
+        need = self._edge_need(ids)
+        return next((level for level in self.edge_levels if level >= need), need)
+
     def capacity_for_pairs(self, pairs: int) -> GraphCapacity:
         """Smallest capacity level holding ``pairs`` with head-room (beyond the top level: rounded up)."""
         need = self._required(pairs)
@@ -212,7 +248,10 @@ class BatchStream:
         current = batch.capacity.edges
         edges = next((level for level in self.capacity_levels if level > current), _round_up(1.25 * current, 64))
         cell = None if batch.capacity.cell is None else batch.capacity.cell + max(2, batch.capacity.cell // 4)
-        return batch.with_capacity(GraphCapacity(edges=edges, cell=cell))
+        budget = batch.edge_budget
+        if budget is not None:
+            budget = next((level for level in self.edge_levels if level > budget), _round_up(1.25 * budget, 64))
+        return batch.with_capacity(GraphCapacity(edges=edges, cell=cell), budget)
 
     # -- order ---------------------------------------------------------------------------------
     def epoch_order(self, epoch: int) -> np.ndarray:
@@ -236,8 +275,7 @@ class BatchStream:
         """A padded batch of the given example ids."""
         ids = np.asarray(ids, np.int64)
         trajs, starts = self.index.trajectory[ids], self.index.start[ids]
-        n_max = max(self.positions[t].shape[1] for t in trajs)
-        nodes = next(b for b in self.node_budgets if b >= n_max)
+        nodes = self._node_budget(ids)
         b = len(ids)
         position = np.zeros((b, self.window, nodes, self.dim), np.float32)
         radius = np.ones((b, nodes), np.float32)
@@ -249,7 +287,8 @@ class BatchStream:
             mask[k, :n] = True
         capacity = self.capacity_for_pairs(int(self.pairs[ids].max()))
         example = np.stack([trajs, starts], axis=1).astype(np.int32)
-        return Batch(position=position, radius=radius, mask=mask, example=example, capacity=capacity)
+        return Batch(position=position, radius=radius, mask=mask, example=example, capacity=capacity,
+                     edge_budget=self.edge_budget_for(ids))
 
     # -- iteration -------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[Batch]:

@@ -33,7 +33,7 @@ from jax import lax
 from dispgns._config import config_from_mapping
 from dispgns.data.examples import Batch
 from dispgns.model import ModelConfig, identity_normalization, init_params
-from dispgns.simulator import build_graph, network_output_batch, one_step, sanitize
+from dispgns.simulator import build_graph, merged_edge_count, network_output_batch, one_step_batch, sanitize
 from dispgns.training.noise import random_walk_noise, target_acceleration
 
 
@@ -172,31 +172,38 @@ def create_train_state(key: jax.Array, model_config: ModelConfig, train_config: 
                       model_config=model_config, train_config=train_config)
 
 
-def _prepare_example(params, position, radius, mask, key, capacity, model_config: ModelConfig,
-                     train_config: TrainConfig):
-    """Inputs, graph and standardised target of one example (no gradient flows through here).
+def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_config: TrainConfig):
+    """Inputs, graphs and standardised targets of a batch (no gradient flows through here).
 
-    Returns ``(inputs (C, N, D) sanitised, radius (N,) sanitised, graph, target (N, D), overflow)``.
+    Returns ``(inputs (B, C, N, D) sanitised, radius (B, N) sanitised,
+    graphs, target (B, N, D), overflow ())``.
     """
     c = model_config.input_sequence_length
     k = train_config.pushforward_steps
-    inputs = position[:c]
-    window = inputs + random_walk_noise(key, inputs, train_config.noise_std, mask)
+    position, radius, mask = batch.position, batch.radius, batch.mask
+    keys = jax.random.split(key, position.shape[0])
+    inputs = position[:, :c]
+    windows = inputs + jax.vmap(lambda key, x, m: random_walk_noise(key, x, train_config.noise_std, m))(
+        keys, inputs, mask)
     overflow = jnp.zeros((), bool)
     if k:
         def advance(carry, _):
-            window, overflow = carry
-            _, nxt, step_overflow = one_step(params, window, radius, mask, capacity, model_config)
-            window = jnp.concatenate([window[1:], nxt[None]], axis=0)
-            return (window, overflow | step_overflow), None
+            windows, overflow = carry
+            _, nxt, step_overflow = one_step_batch(params, windows, radius, mask, batch.capacity, model_config,
+                                                   edge_budget=batch.edge_budget)
+            windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
+            return (windows, overflow | jnp.any(step_overflow)), None
 
-        (window, overflow), _ = lax.scan(advance, (window, overflow), None, length=k)
-    x, a = sanitize(window, radius, mask, model_config)
-    graph = build_graph(x[-1], mask, capacity, model_config)
-    target = target_acceleration(position[c + k], position[c + k - 1], window) / a[:, None]
+        (windows, overflow), _ = lax.scan(advance, (windows, overflow), None, length=k)
+    x, a = jax.vmap(lambda w, r, m: sanitize(w, r, m, model_config))(windows, radius, mask)
+    graphs = jax.vmap(lambda p, m: build_graph(p, m, batch.capacity, model_config))(x[:, -1], mask)
+    overflow = overflow | jnp.any(graphs.overflow)
+    if batch.edge_budget is not None:
+        overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > batch.edge_budget)
+    target = jax.vmap(target_acceleration)(position[:, c + k], position[:, c + k - 1], windows) / a[..., None]
     norm = params["normalization"]
     target = (target - norm["acceleration_mean"]) / norm["acceleration_std"]
-    return x, a, graph, target, overflow | graph.overflow
+    return x, a, graphs, target, overflow
 
 
 def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: ModelConfig,
@@ -204,20 +211,18 @@ def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: 
     """Mean over the real particles of the batch of the squared error summed over D.
 
     The ``B`` examples are evaluated as one disjoint graph
-    (:func:`dispgns.simulator.network_output_batch`).
+    (:func:`dispgns.simulator.network_output_batch`), compacted to
+    ``batch.edge_budget`` edge slots when the batch has one.
 
     Returns ``(loss, {"overflow": bool})``.
     """
-    keys = jax.random.split(key, batch.position.shape[0])
     frozen = lax.stop_gradient({"network": network, "normalization": normalization})
-    x, a, graphs, target, overflow = jax.vmap(
-        lambda x, a, m, k: _prepare_example(frozen, x, a, m, k, batch.capacity, model_config, train_config))(
-            batch.position, batch.radius, batch.mask, keys)
+    x, a, graphs, target, overflow = _prepare_batch(frozen, batch, key, model_config, train_config)
     params = {"network": network, "normalization": normalization}
-    output = network_output_batch(params, x, a, graphs, model_config=model_config)
+    output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=batch.edge_budget)
     error = jnp.where(batch.mask, jnp.sum((output - target) ** 2, axis=-1), 0.0)
     loss = jnp.sum(error) / jnp.maximum(jnp.sum(batch.mask, dtype=jnp.float32), 1.0)
-    return loss, {"overflow": jnp.any(overflow)}
+    return loss, {"overflow": overflow}
 
 
 @jax.jit
@@ -282,8 +287,10 @@ def train_step_checked(state: TrainState, batch: Batch, key: jax.Array, grow=Non
             return new_state, metrics, batch
         if grow is None:
             cap = batch.capacity
+            budget = batch.edge_budget
             batch = batch.with_capacity(GraphCapacity(edges=round_capacity(int(cap.edges * 1.25), margin=0.0),
-                                                      cell=None if cap.cell is None else cap.cell + 2))
+                                                      cell=None if cap.cell is None else cap.cell + 2),
+                                        None if budget is None else round_capacity(int(budget * 1.25), margin=0.0))
         else:
             batch = grow(batch)
     raise RuntimeError(f"graph capacity still overflows after {max_retries} increases (now {batch.capacity})")
