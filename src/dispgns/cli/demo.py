@@ -136,15 +136,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ratio(metrics) -> str:
+    ratio = metrics["mse_over_constant_velocity"]
+    if not ratio > 0:
+        return "model MSE not finite" if not metrics["finite"] else "baseline MSE is 0"
+    if ratio >= 1:
+        return f"model is {ratio:.1f}x higher"
+    return f"model is {1 / ratio:.0f}x lower" if ratio <= 0.1 else f"model is {1 / ratio:.1f}x lower"
+
+
 def summary_table(metrics, timings, steps: int, euler_steps: int) -> str:
     """The demo's results as a Markdown table."""
     rows = [
         ("rollout MSE (normalised units²)", fmt(metrics["mse"])),
         ("RMSE", f"{metrics['rmse_mm']:.2f} mm = {metrics['rmse_diameters']:.2f} mean diameters"),
         ("MSE at 10 / 100 steps", f"{fmt(metrics['mse_h10'])} / {fmt(metrics['mse_h100'])}"),
-        ("constant-velocity baseline MSE", f"{fmt(metrics['constant_velocity_mse'])} "
-                                           f"(model is {1 / metrics['mse_over_constant_velocity']:.0f}x lower)"
-         if metrics["mse_over_constant_velocity"] > 0 else fmt(metrics["constant_velocity_mse"])),
+        ("constant-velocity baseline MSE", f"{fmt(metrics['constant_velocity_mse'])} ({_ratio(metrics)})"),
     ]
     if "chaos_floor_mse" in metrics:
         rows.append(("chaos floor MSE (physics, 1e-6 L perturbation)", fmt(metrics["chaos_floor_mse"])))
