@@ -256,12 +256,14 @@ def run(args: argparse.Namespace) -> int:
         _create_run_dir(run_dir, overwrite=args.overwrite)
     checkpointer = Checkpointer(run_dir, keep=train_config.keep_checkpoints, config=config)
     log = JsonlLog(run_dir / LOG_FILE)
-    if args.resume and checkpointer.latest_step() is not None:
-        try:
-            state, key, _ = checkpointer.restore(state, key)
-        except CheckpointError as error:
-            checkpointer.close()
-            raise CLIError(str(error)) from None
+    if args.resume:
+        if checkpointer.latest_step() is not None:
+            try:
+                state, key, _ = checkpointer.restore(state, key)
+            except CheckpointError as error:
+                checkpointer.close()
+                raise CLIError(str(error)) from None
+        # Records past the checkpoint (or all, if the run died before its first one) are redone.
         log.truncate_after(int(state.step))
     write_json(run_dir / CONFIG_FILE, config)
 

@@ -170,8 +170,7 @@ def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, Tr
 
 def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[str, Any]:
     return {"params": state.params, "opt_state": state.opt_state, "step": state.step,
-            "key": jax.random.key_data(key), "data_position": jnp.asarray(data_position, jnp.int64
-                                                                         if jax.config.jax_enable_x64 else jnp.int32)}
+            "key": jax.random.key_data(key), "data_position": np.asarray(data_position, np.int32)}
 
 
 class Checkpointer:
