@@ -184,3 +184,23 @@ def test_compacted_batches_train_exactly_like_padded_ones(trajectories):
     grown, metrics, used = train_step_checked(state, tight, jax.random.key(5), grow=compact.grow)
     assert used.edge_budget > 64 and not bool(metrics["overflow"])
     np.testing.assert_allclose(float(metrics["loss"]), float(metrics_a["loss"]), rtol=1e-5)
+
+
+def test_mirror_augmentation_reflects_horizontal_axes_deterministically(trajectories):
+    kwargs = dict(input_sequence_length=6, batch_size=4, connectivity_radius=0.2, seed=2)
+    plain = BatchStream(trajectories, **kwargs)
+    mirrored = BatchStream(trajectories, mirror=True, **kwargs)
+    flipped_any = False
+    for i in range(6):
+        a, b = plain.batch(i), mirrored.batch(i)
+        np.testing.assert_array_equal(a.example, b.example)
+        np.testing.assert_array_equal(a.position[..., 1], b.position[..., 1])  # gravity axis untouched
+        same = np.all(a.position[..., 0] == b.position[..., 0], axis=(1, 2))
+        negated = np.all(a.position[..., 0] == -b.position[..., 0], axis=(1, 2))
+        assert np.all(same | negated)
+        flipped_any |= bool(np.any(negated & ~same))
+        np.testing.assert_array_equal(b.position, BatchStream(trajectories, mirror=True, **kwargs).batch(i).position)
+    assert flipped_any
+    assert TrainConfig().mirror_augmentation is False
+    with pytest.raises(ValueError, match="symmetric"):
+        BatchStream(trajectories, mirror=True, bounds=((0.0, 1.0), (-1.0, 1.0)), **kwargs)

@@ -7,6 +7,10 @@ node budget (particle slots) and carrying a static graph capacity (ordered
 pairs per example): the jitted training step compiles once per distinct
 ``(node budget, capacity)`` and this module keeps those few.
 
+Mirror augmentation (optional): the physics is symmetric under ``x_d -> -x_d``
+for every axis but the last (gravity), so each example of batch ``i`` may be
+reflected on those axes, drawn from ``default_rng([seed, 1, i])``.
+
 Order and resume: batch ``i`` is a pure function of ``(seed, i)``: epoch ``e
 = i // batches_per_epoch`` uses the permutation ``default_rng([seed,
 e]).permutation(num_examples)`` and batch ``i`` takes the next ``B`` examples
@@ -136,7 +140,7 @@ class BatchStream:
                  connectivity_radius: float, seed: int = 0, pushforward_steps: int = 0, shuffle: bool = True,
                  node_budgets: Sequence[int] | None = None, num_capacity_levels: int = 4,
                  capacity_margin: float = 0.03, capacity_extra: int = 64, use_cell_list: bool | None = None,
-                 bounds: Bounds = DEFAULT_BOUNDS, compact_edges: bool = True):
+                 bounds: Bounds = DEFAULT_BOUNDS, compact_edges: bool = True, mirror: bool = False):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.input_sequence_length = int(input_sequence_length)
@@ -144,6 +148,9 @@ class BatchStream:
         self.window = self.input_sequence_length + 1 + self.pushforward_steps
         self.batch_size = int(batch_size)
         self.seed = int(seed)
+        self.mirror = bool(mirror)
+        if self.mirror and any(abs(lo + hi) > 1e-12 for lo, hi in bounds):
+            raise ValueError(f"mirror augmentation needs a box symmetric about 0, got {bounds}")
         self.shuffle = bool(shuffle)
         self.connectivity_radius = float(connectivity_radius)
         self.capacity_margin = float(capacity_margin)
@@ -206,7 +213,7 @@ class BatchStream:
         return cls(trajectories, input_sequence_length=model_config.input_sequence_length,
                    batch_size=train_config.batch_size, connectivity_radius=model_config.connectivity_radius,
                    seed=train_config.seed, pushforward_steps=train_config.pushforward_steps,
-                   bounds=model_config.bounds, **kwargs)
+                   bounds=model_config.bounds, mirror=train_config.mirror_augmentation, **kwargs)
 
     # -- sizes ---------------------------------------------------------------------------------
     @property
@@ -269,10 +276,20 @@ class BatchStream:
 
     def batch(self, i: int) -> Batch:
         """Batch ``i`` (a pure function of ``seed`` and ``i``)."""
-        return self.make_batch(self.batch_examples(i))
+        ids = self.batch_examples(i)
+        flips = None
+        if self.mirror:
+            flips = np.random.default_rng([self.seed, 1, int(i)]).integers(0, 2, (len(ids), self.dim - 1)) == 1
+        return self.make_batch(ids, flips)
 
-    def make_batch(self, ids: Sequence[int]) -> Batch:
-        """A padded batch of the given example ids."""
+    def make_batch(self, ids: Sequence[int], flips: np.ndarray | None = None) -> Batch:
+        """A padded batch of the given example ids.
+
+        Args:
+          ids: example ids.
+          flips: optional ``(len(ids), D - 1)`` bool: reflect example ``k`` on
+            axis ``d`` (``x_d -> -x_d``) where ``flips[k, d]``.
+        """
         ids = np.asarray(ids, np.int64)
         trajs, starts = self.index.trajectory[ids], self.index.start[ids]
         nodes = self._node_budget(ids)
@@ -283,6 +300,8 @@ class BatchStream:
         for k, (t, s) in enumerate(zip(trajs, starts)):
             n = self.positions[t].shape[1]
             position[k, :, :n] = self.positions[t][s:s + self.window]
+            if flips is not None:
+                position[k, :, :n, :-1] *= np.where(flips[k], -1.0, 1.0).astype(np.float32)
             radius[k, :n] = self.radii[t]
             mask[k, :n] = True
         capacity = self.capacity_for_pairs(int(self.pairs[ids].max()))

@@ -52,6 +52,11 @@ class TrainConfig:
       standardize: standardise radius-normalised velocities and accelerations
         with dataset statistics (True); False is the authors' recipe.
       pushforward_steps: unrolled steps without gradient before the loss (0).
+      mirror_augmentation: reflect each training example on each horizontal
+        axis with probability 1/2 (the physics is mirror-symmetric; gravity
+        is along the last axis), so that the model sees as many wall
+        contacts on one side as on the other (False; the shipped model's
+        config turns it on).
       num_steps: training steps of a full run (2 million in the paper).
       seed: seed of the parameter initialisation, data order and noise.
       log_every: steps between log records (mean loss since the last one).
@@ -74,6 +79,7 @@ class TrainConfig:
     min_learning_rate: float = 1e-6
     standardize: bool = True
     pushforward_steps: int = 0
+    mirror_augmentation: bool = False
     num_steps: int = 2_000_000
     seed: int = 0
     log_every: int = 100
