@@ -137,3 +137,23 @@ def test_bad_shapes_are_rejected(params, inputs):
         predict_position(params, x, a[1:], model_config=TINY)
     with pytest.raises(ValueError, match="n_steps"):
         rollout(params, x, a, 0, model_config=TINY)
+
+
+def test_keep_inside_box_projects_onto_the_walls(inputs):
+    import dataclasses
+
+    x, a = inputs
+    # A model that pushes everything towards +x: without the constraint particles leave the box.
+    norm = {"velocity_mean": jnp.zeros(2), "velocity_std": jnp.full((2,), 0.05),
+            "acceleration_mean": jnp.array([0.5, 0.0]), "acceleration_std": jnp.full((2,), 1e-4)}
+    free_config = TINY
+    boxed_config = dataclasses.replace(TINY, keep_inside_box=True)
+    params = init_params(jax.random.key(1), free_config, norm)
+    free = np.asarray(rollout(params, x, a, 8, model_config=free_config, capacity=CAP))
+    boxed = np.asarray(rollout(params, x, a, 8, model_config=boxed_config, capacity=CAP))
+    limit = 1.0 - np.asarray(a)[None, :]
+    assert np.any(free[..., 0] > limit + 1e-3)
+    assert np.all(np.abs(boxed) <= limit[..., None] + 1e-6)
+    # The first step is the free one, projected.
+    np.testing.assert_allclose(boxed[0], np.clip(free[0], -limit[0][:, None], limit[0][:, None]), atol=1e-6)
+    assert np.any(np.isclose(boxed[..., 0], limit, atol=1e-6))

@@ -73,6 +73,11 @@ class ModelConfig:
       matmul_dtype: ``"float32"`` (default, exact) or ``"bfloat16"``: matmul
         inputs rounded to bfloat16 with float32 accumulation (what TPUs do by
         default; about twice as fast on CPUs with AVX512-BF16).
+      keep_inside_box: after every predicted step, move a centre that the
+        network put beyond its wall contact position (``lo + a_i``,
+        ``hi - a_i`` on an axis) back onto it (False: the network's position
+        as it is, the paper's method). A hard constraint the walls of the
+        data obey; the next velocity then follows from the corrected position.
     """
 
     latent_size: int = 128
@@ -87,6 +92,7 @@ class ModelConfig:
     bounds: Bounds | None = None
     layer_norm_epsilon: float = 1e-5
     matmul_dtype: str = "float32"
+    keep_inside_box: bool = False
 
     def __post_init__(self):
         for name in ("latent_size", "hidden_size", "message_passing_steps", "dim"):

@@ -212,8 +212,17 @@ def one_step(params, position_seq, radius, mask, capacity: GraphCapacity, model_
     acc = jnp.where(mask[:, None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[-1]
     velocity = last - position_seq[-2] + acc
-    next_position = jnp.where(mask[:, None], last + velocity, last)
+    next_position = jnp.where(mask[:, None], _constrain(last + velocity, radius, model_config), last)
     return acc, next_position, graph.overflow
+
+
+def _constrain(position, radius, model_config: ModelConfig):
+    """``position`` ``(..., N, D)`` moved onto the wall contact positions where beyond them (if asked)."""
+    if not model_config.keep_inside_box:
+        return position
+    b = graph_lib.bounds_array(model_config.bounds, position.dtype)
+    a = jnp.asarray(radius, position.dtype)[..., None]
+    return jnp.clip(position, b[:, 0] + a, b[:, 1] - a)
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "model_config"))
@@ -401,7 +410,8 @@ def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, 
     acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
     acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[:, -1]
-    next_position = jnp.where(mask[..., None], last + (last - position_seq[:, -2]) + acc, last)
+    next_position = jnp.where(mask[..., None], _constrain(last + (last - position_seq[:, -2]) + acc, radius,
+                                                          model_config), last)
     overflow = graphs.overflow
     if edge_budget is not None:
         overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > edge_budget)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from dispgns.cli import CLIError
 
 
@@ -11,10 +13,20 @@ def add_model_argument(parser) -> None:
                              "(default: the model shipped with dispgns)")
     parser.add_argument("--best", action="store_true",
                         help="with a run directory: the best checkpoint by validation instead of the final model")
+    parser.add_argument("--keep-inside-box", choices=("on", "off"), default=None,
+                        help="project predicted centres that cross a wall back onto it (default: as the model's "
+                             "config says)")
 
 
 def load_model_argument(args):
-    """``(params, model_config, info)`` for ``--model``/``--best`` (the shipped model by default)."""
+    """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: the shipped model)."""
+    params, model_config, info = _load(args)
+    if getattr(args, "keep_inside_box", None) is not None:
+        model_config = dataclasses.replace(model_config, keep_inside_box=args.keep_inside_box == "on")
+    return params, model_config, info
+
+
+def _load(args):
     from dispgns.training.checkpoint import CheckpointError, load_params
 
     if args.model is None:
