@@ -111,6 +111,8 @@ def main() -> int:
     parser.add_argument("--evaluate-only", action="store_true", help="skip generation and training")
     parser.add_argument("--ship", action="store_true",
                         help="copy the trained model and its record into src/dispgns/pretrained/paper")
+    parser.add_argument("--best", action="store_true",
+                        help="evaluate and ship the run's best checkpoint by validation instead of its last step")
     parser.add_argument("--keep-inside-box", choices=("on", "off"), default="on",
                         help="the shipped model's keep_inside_box setting (default on)")
     args = parser.parse_args()
@@ -131,7 +133,7 @@ def main() -> int:
                         ("on", "with predicted centres kept inside the box (keep_inside_box)")):
         eval_dir = out / f"eval-box-{mode}"
         run_stage(["evaluate", "--model", str(run_dir), "--data", str(data), "--splits", "test", "test_unseen",
-                   "--out", str(eval_dir), "--keep-inside-box", mode])
+                   "--out", str(eval_dir), "--keep-inside-box", mode] + (["--best"] if args.best else []))
         evaluation = json.loads((eval_dir / "metrics.json").read_text())
         text, summary = results(evaluation, run_dir)
         texts.append(f"### {title}\n\n{text}")
@@ -141,7 +143,7 @@ def main() -> int:
     print("\n\n".join(texts))
     print(f"wrote {out / 'results.md'} and {out / 'results.json'}")
     if args.ship:
-        ship(run_dir, summaries, keep_inside_box=args.keep_inside_box == "on")
+        ship(run_dir, summaries, keep_inside_box=args.keep_inside_box == "on", best=args.best)
     return 0
 
 
@@ -156,13 +158,14 @@ def training_time(log: list[dict]) -> float:
     return total + last
 
 
-def ship(run_dir: Path, summaries: dict, keep_inside_box: bool) -> None:
-    """Copy ``run_dir/model`` into the package, with the evaluation summaries in its record."""
+def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool) -> None:
+    """Copy the run's model (its last step, or its best checkpoint) into the package, with the
+    evaluation summaries in its record."""
     import dataclasses
 
-    from dispgns.training.checkpoint import export_model, load_model, read_json
+    from dispgns.training.checkpoint import export_model, load_params, read_json
 
-    params, model_config, info = load_model(run_dir / "model")
+    params, model_config, info = load_params(run_dir, best=best)
     model_config = dataclasses.replace(model_config, keep_inside_box=keep_inside_box)
     config = read_json(run_dir / "config.json", "configuration of the run")
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines() if line.strip()]
@@ -179,7 +182,7 @@ def ship(run_dir: Path, summaries: dict, keep_inside_box: bool) -> None:
     target = REPO / "src" / "dispgns" / "pretrained" / "paper"
     export_model(target, params, model_config, record)
     shutil.copyfile(run_dir / "training_curve.png", target / "training_curve.png")
-    print(f"shipped {run_dir / 'model'} as {target} (keep_inside_box={keep_inside_box})")
+    print(f"shipped {info['source']} as {target} (keep_inside_box={keep_inside_box})")
 
 
 if __name__ == "__main__":

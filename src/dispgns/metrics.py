@@ -21,7 +21,7 @@ functions :func:`horizon_mse`, :func:`rollout_metrics` and :func:`summarize`
 return plain Python floats and lists (JSON-ready), and :func:`chaos_floor_rollout`
 runs the ground-truth physics.
 
-The paper (Hashemi & Izadkhah 2025, spec section 3) reports its rollout MSE in
+The paper (Hashemi & Izadkhah 2025) reports its rollout MSE in
 normalised units and converts an MSE of 6.6e-4 into "0.066 mm", which
 multiplies a squared length by ``L`` and is not a length. The root-mean-square
 error is ``sqrt(MSE) * L`` (2.6 mm for that example); :func:`rollout_metrics`

@@ -134,6 +134,9 @@ class BatchStream:
         testing all pairs. Its per-cell capacity is the fullest cell of any
         frame plus head-room.
       bounds: the box (only for the cell grid).
+      mirror: reflect each example on the horizontal axes with probability
+        1/2, drawn per batch index (so resuming replays the same batches);
+        needs a box symmetric about 0.
     """
 
     def __init__(self, trajectories: Sequence[Any], *, input_sequence_length: int, batch_size: int,

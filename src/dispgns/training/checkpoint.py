@@ -19,8 +19,8 @@ and what ``evaluate``/``render``/``demo`` load: the parameters as msgpack
 (flax.serialization: plain arrays, no pickle) and ``model.json`` with the
 :class:`~dispgns.model.ModelConfig` and a free-form training record.
 
-This module and :mod:`dispgns.data` are the only library modules that touch
-files, and only at the paths they are given.
+This module, :mod:`dispgns.data` and :mod:`dispgns.render` are the only
+library modules that write files, and only at the paths they are given.
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 DeepMind's GNS standardises the input velocities and the target
 accelerations with dataset statistics, adding the training-noise std in
-quadrature; the paper's authors dropped it, and it matters (see the spec, §2).
+quadrature; the paper's authors dropped it, and it matters (measured in
+``experiments/paper/README.md``).
 dispgns standardises ``v / a_i`` and ``acc / a_i`` (the quantities the
 network sees and predicts). The statistics live in ``params["normalization"]``
 and are never trained.

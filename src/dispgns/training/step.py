@@ -55,8 +55,8 @@ class TrainConfig:
       mirror_augmentation: reflect each training example on each horizontal
         axis with probability 1/2 (the physics is mirror-symmetric; gravity
         is along the last axis), so that the model sees as many wall
-        contacts on one side as on the other (False; the shipped model's
-        config turns it on).
+        contacts on one side as on the other (False;
+        ``experiments/paper/config.yaml`` turns it on).
       num_steps: training steps of a full run (2 million in the paper).
       seed: seed of the parameter initialisation, data order and noise.
       log_every: steps between log records (mean loss since the last one).
