@@ -56,7 +56,10 @@ def pair_force_over_distance(r2: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray
     sigma = a_i + a_j
     inv_r = lax.rsqrt(r2)
     # 1 / max(r, r_m) = min(1/r, 1/r_m), with r_m = c min(a_i, a_j): one rsqrt per pair.
-    inv_r_min = 1.0 / (config.min_distance_coeff * jnp.minimum(a_i, a_j))
+    # 1 / (c min(a_i, a_j)) = max(1 / (c a_i), 1 / (c a_j)) exactly (the same rounded
+    # reciprocal is picked), and on broadcast (Q, 1) x (1, N) radii the reciprocals
+    # are per particle, not per pair.
+    inv_r_min = jnp.maximum(1.0 / (config.min_distance_coeff * a_i), 1.0 / (config.min_distance_coeff * a_j))
     inv_r_eff = jnp.minimum(inv_r, inv_r_min)
     ratio_p = lax.integer_pow(sigma * inv_r_eff, p)
     well_depth = config.well_depth_coeff * sigma * sigma
