@@ -61,7 +61,8 @@ def machine_info() -> dict:
         pass
     return {"cpu": cpu, "cores": os.cpu_count(), "load_average_1min": os.getloadavg()[0],
             "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
-            "xla_flags": os.environ.get("XLA_FLAGS", "")}
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "host_allocator_tuned": dispgns.runtime.host_allocator_tuned()}
 
 
 def trajectories(n_particles: int, frames: int, seeds=(0, 1)):

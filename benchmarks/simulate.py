@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dispgns import PhysicsConfig, sample_initial_state, simulate, simulate_batch
+from dispgns.runtime import host_allocator_tuned
 
 AUTHORS_NUMPY_STEP_MS = 10.8  # measured on this 2-core machine, N = 220
 PAPER_RADII = np.arange(2.0, 5.01, 0.5) * 1e-3
@@ -48,6 +49,7 @@ def machine_info() -> dict:
         "python": platform.python_version(),
         "jax": jax.__version__,
         "device": str(jax.devices()[0]),
+        "host_allocator_tuned": host_allocator_tuned(),
     }
 
 

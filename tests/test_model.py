@@ -1,5 +1,6 @@
 """The graph network: size, invariances, padding, jit, and the edge-update defect."""
 
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -182,3 +183,39 @@ def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
     # tells the caller, who must not use the result.
     merged, _ = both(params, xs, radii, graphs, real - 1)
     assert not np.allclose(np.asarray(merged[1]), np.asarray(separate[1]), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("rows", [24, 13])
+def test_bfloat16_matmul_gradient_matches_autodiff(rows):
+    from dispgns.model import _matmul_bf16
+
+    x = jax.random.normal(jax.random.key(0), (rows, 16))
+    kernel = jax.random.normal(jax.random.key(1), (16, 8))
+    w = jax.random.normal(jax.random.key(2), (rows, 8))
+
+    def plain(x, k):
+        return jnp.dot(x.astype(jnp.bfloat16), k.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
+
+    ours = jax.grad(lambda x, k: jnp.sum(jnp.sin(_matmul_bf16(x, k)) * w), argnums=(0, 1))
+    ref = jax.grad(lambda x, k: jnp.sum(jnp.sin(plain(x, k)) * w), argnums=(0, 1))
+    for jit in (False, True):
+        f = jax.jit(ours) if jit else ours
+        for got, want in zip(f(x, kernel), ref(x, kernel)):
+            assert got.dtype == jnp.float32
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2e-2, atol=2e-2 * float(jnp.max(jnp.abs(want))))
+    np.testing.assert_array_equal(np.asarray(_matmul_bf16(x, kernel)), np.asarray(plain(x, kernel)))
+
+
+def test_bfloat16_network_gradient_close_to_float32(params, inputs):
+    x, a = inputs
+    bf16 = dataclasses.replace(TINY, matmul_dtype="bfloat16")
+
+    def loss(net, config):
+        p = {"network": net, "normalization": params["normalization"]}
+        return jnp.sum(predict_acceleration(p, x, a, model_config=config, capacity=CAPACITY) ** 2)
+
+    g32 = jax.jit(jax.grad(loss), static_argnums=1)(params["network"], TINY)
+    g16 = jax.jit(jax.grad(loss), static_argnums=1)(params["network"], bf16)
+    for leaf32, leaf16 in zip(jax.tree_util.tree_leaves(g32), jax.tree_util.tree_leaves(g16)):
+        scale = float(jnp.max(jnp.abs(leaf32)))
+        assert float(jnp.max(jnp.abs(leaf16 - leaf32))) <= 0.1 * scale + 1e-6

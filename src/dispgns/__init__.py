@@ -2,6 +2,11 @@
 
 __version__ = "0.1.0"
 
+# First, before jax-md's import starts JAX's CPU backend: see dispgns.runtime.
+from dispgns.runtime import tune_at_import as _tune_at_import, tune_host_allocator
+
+_tune_at_import()
+
 from dispgns.physics import (
     PhysicsConfig,
     SimState,
@@ -52,7 +57,7 @@ from dispgns.pretrained import load_pretrained
 from dispgns.training.checkpoint import export_model, load_model, load_params
 
 __all__ += [
-    "GraphCapacity", "ModelConfig", "init_params", "predict_acceleration", "predict_position", "rollout",
+    "tune_host_allocator", "GraphCapacity", "ModelConfig", "init_params", "predict_acceleration", "predict_position", "rollout",
     "rollout_batch", "TrainConfig", "TrainState", "compute_normalization", "create_train_state", "make_optimizer",
     "train_step", "Batch", "BatchStream", "evaluate_trajectories", "load_pretrained", "export_model", "load_model",
     "load_params",
