@@ -124,9 +124,10 @@ def edge_mlp_rate(edges: int, dtype: str, repeats: int = 15) -> tuple[float, flo
     """GFLOP/s of a stack of per-edge MLPs (forward + backward), the bulk of a training step.
 
     Returns ``(mlp_rate, matmul_rate)``: the matmul is an ``edges x 128 x 128``
-    product of the same dtype, timed interleaved with the MLP stack (one call
-    of each per round, median over rounds) so that both see the same machine
-    (on a shared VM the speed drifts by +-15 % within a minute).
+    product of the same dtype, timed in alternation with the MLP stack (per
+    round one MLP call and the mean of ten matmul calls; medians over rounds)
+    so that both see the same machine (its speed drifts by +-15 % within a
+    minute here).
     """
     low = None if dtype == "float32" else jnp.bfloat16
     mlp = MLP(128, (128, 128), 128, matmul_dtype=low)

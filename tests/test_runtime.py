@@ -10,7 +10,7 @@ import pytest
 # glibc's defaults every call maps fresh pages for it (one page fault per
 # 4 KiB page); with the tuning the heap block is reused.
 _CHILD = r"""
-import resource, sys
+import resource
 import dispgns
 import jax, jax.numpy as jnp
 x = jnp.ones((5000, 64), jnp.float32)

@@ -57,8 +57,8 @@ from dispgns.pretrained import load_pretrained
 from dispgns.training.checkpoint import export_model, load_model, load_params
 
 __all__ += [
-    "tune_host_allocator", "GraphCapacity", "ModelConfig", "init_params", "predict_acceleration", "predict_position", "rollout",
-    "rollout_batch", "TrainConfig", "TrainState", "compute_normalization", "create_train_state", "make_optimizer",
-    "train_step", "Batch", "BatchStream", "evaluate_trajectories", "load_pretrained", "export_model", "load_model",
-    "load_params",
+    "tune_host_allocator", "GraphCapacity", "ModelConfig", "init_params", "predict_acceleration",
+    "predict_position", "rollout", "rollout_batch", "TrainConfig", "TrainState", "compute_normalization",
+    "create_train_state", "make_optimizer", "train_step", "Batch", "BatchStream", "evaluate_trajectories",
+    "load_pretrained", "export_model", "load_model", "load_params",
 ]

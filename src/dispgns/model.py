@@ -148,15 +148,15 @@ def _matmul_bf16(x, kernel):
 
 
 def _matmul_bf16_fwd(x, kernel):
-    xb, kb = x.astype(jnp.bfloat16), kernel.astype(jnp.bfloat16)
-    y = jnp.dot(xb, kb, preferred_element_type=jnp.float32).astype(x.dtype)
-    # Residuals in bfloat16: what the product used, at half the memory.
-    return y, (xb, kb, jnp.zeros((0,), x.dtype), jnp.zeros((0,), kernel.dtype))
+    xb = x.astype(jnp.bfloat16)
+    y = jnp.dot(xb, kernel.astype(jnp.bfloat16), preferred_element_type=jnp.float32).astype(x.dtype)
+    # x in bfloat16 (what the product used, at half the memory); the kernel as given (small).
+    return y, (xb, kernel)
 
 
 def _matmul_bf16_bwd(residuals, dy):
-    xb, kb, x_dtype, k_dtype = residuals
-    gb = dy.astype(jnp.bfloat16)
+    xb, kernel = residuals
+    gb, kb = dy.astype(jnp.bfloat16), kernel.astype(jnp.bfloat16)
     # XLA:CPU's bfloat16 dot is 3-4x slower with a transposed operand: give it
     # a kernel transposed in memory, and contract over rows in a few chunks.
     kernel_t = lax.optimization_barrier(kb.T.reshape(-1)).reshape(kb.shape[::-1])
@@ -165,7 +165,8 @@ def _matmul_bf16_bwd(residuals, dy):
     chunks = _row_chunks(rows)
     dk = jnp.einsum("cri,cro->io", xb.reshape(chunks, rows // chunks, -1), gb.reshape(chunks, rows // chunks, -1),
                     preferred_element_type=jnp.float32)
-    return dx.astype(x_dtype.dtype), dk.astype(k_dtype.dtype)
+    # dy has x's dtype (the forward casts its result to it).
+    return dx.astype(dy.dtype), dk.astype(kernel.dtype)
 
 
 _matmul_bf16.defvjp(_matmul_bf16_fwd, _matmul_bf16_bwd)
