@@ -142,3 +142,20 @@ def test_feature_gradients_are_finite_on_self_loops(ref):
 
     grads = jax.jit(jax.grad(total, argnums=(0, 1)))(pos, a)
     assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+
+
+def test_default_candidate_search_falls_back_to_all_pairs_where_no_cell_list_fits():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (6, 200, 2)).astype(np.float32)
+    radius = np.full(200, 0.02, np.float32)
+    # A radius so large that the grid has fewer than 3 cells per side, and a 1-D system.
+    assert not G.cell_list_possible(2, connectivity_radius=2.5) and not G.cell_list_possible(1, connectivity_radius=0.05)
+    assert G.capacity_for(x[-1], connectivity_radius=2.5).cell is None
+    _, _, senders, receivers = F.graph_features(x, radius, connectivity_radius=2.5)
+    d2 = ((x[-1, :, None].astype(np.float64) - x[-1, None, :]) ** 2).sum(-1)
+    assert len(senders) == int((d2 < 2.5 ** 2).sum())  # self-loops included
+    line = x[..., :1]
+    _, _, senders, receivers = F.graph_features(line, radius, bounds=((-1.0, 1.0),), connectivity_radius=0.05)
+    close = np.abs(line[-1, :, 0][:, None] - line[-1, :, 0][None, :]) < 0.05
+    assert len(senders) == int(close.sum())
+    assert G.capacity_for(x[-1], connectivity_radius=0.2).cell is not None  # the usual case keeps the cell list

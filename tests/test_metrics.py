@@ -326,3 +326,9 @@ def test_chaos_floor_stays_close_for_a_few_frames():
     masked = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20, mask=mask)
     np.testing.assert_array_equal(masked[0, 8:], truth[0, 8:])
     assert np.all(masked[0, :8] != truth[0, :8])
+
+
+def test_rollout_metrics_needs_two_input_frames():
+    truth = np.zeros((10, 3, 2))
+    with pytest.raises(ValueError, match="input_frames must be an integer >= 2"):
+        M.rollout_metrics(truth, truth, np.full(3, 0.03), box_half_size=0.1, input_frames=1)

@@ -230,3 +230,40 @@ def test_initial_state_follows_the_protocol():
 def test_impossible_packing_raises_a_clear_error():
     with pytest.raises(PlacementError, match="too dense"):
         sample_initial_state(jax.random.PRNGKey(0), [9e-3], CONFIG, n_particles=200, max_rounds=4)
+
+
+def test_non_finite_padding_rows_never_reach_real_particles():
+    state = sample_initial_state(jax.random.PRNGKey(5), [8e-3, 10e-3], CONFIG, n_particles=12)
+    mask = jnp.arange(14) < 12
+    pad = lambda arr, value: jnp.concatenate([arr, jnp.full((2,) + arr.shape[1:], value, arr.dtype)])
+    alone = np.asarray(simulate(state.position, state.velocity, state.radius, CONFIG, n_frames=10))
+    padded = simulate(pad(state.position, jnp.nan), pad(state.velocity, jnp.inf), pad(state.radius, jnp.nan),
+                      CONFIG, n_frames=10, mask=mask)
+    np.testing.assert_array_equal(np.asarray(padded)[:, :12], alone)
+
+
+def test_collision_capacity_must_be_positive():
+    x0, v0, radius = row_hitting_the_floor()
+    for bad in (0, -3, 1.5, "many"):
+        with pytest.raises(ValueError, match="collision_capacity"):
+            simulate(x0, v0, radius, CONFIG, n_frames=3, collision_capacity=bad)
+
+
+def test_traced_overflow_poisons_only_frames_from_the_overflow_on():
+    # Two particles falling side by side reach the floor in the same step, a few frames in.
+    x0 = np.array([[-0.05, -L + 0.02], [0.05, -L + 0.02]])
+    v0 = np.tile([0.0, -1.0], (2, 1))
+    radius = np.full(2, 5e-3)
+    run = np.asarray(jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=30, collision_capacity=1))(
+        x0, v0, radius))
+    exact = np.asarray(simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=None))
+    finite = np.isfinite(run).all(axis=(1, 2))
+    first_bad = int(np.argmin(finite))
+    assert 1 < first_bad < 30 and not finite[first_bad:].any()
+    np.testing.assert_allclose(run[:first_bad], exact[:first_bad], rtol=0, atol=1e-9)
+
+
+def test_numpy_scalars_are_accepted_as_plain_floats():
+    config = PhysicsConfig(dt=np.float32(1e-4), cutoff=np.float64(0.02), drag=np.int64(2))
+    assert type(config.dt) is float and type(config.cutoff) is float and type(config.drag) is float
+    assert PhysicsConfig.from_dict(config.to_dict()) == config

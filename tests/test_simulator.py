@@ -157,3 +157,31 @@ def test_keep_inside_box_projects_onto_the_walls(inputs):
     # The first step is the free one, projected.
     np.testing.assert_allclose(boxed[0], np.clip(free[0], -limit[0][:, None], limit[0][:, None]), atol=1e-6)
     assert np.any(np.isclose(boxed[..., 0], limit, atol=1e-6))
+
+
+def test_jit_sizes_the_graph_from_concrete_positions_also_with_the_cell_list():
+    # N >= CELL_LIST_MIN_PARTICLES: the default graph uses the cell list.
+    n = 170
+    x0 = np.random.default_rng(0).uniform(-0.9, 0.9, (n, 2)).astype(np.float32)
+    frames = np.stack([x0 + 1e-3 * k for k in range(6)])
+    radius = np.full((n,), 0.03, np.float32)
+    params = init_params(jax.random.key(0), TINY)
+    eager = rollout(params, frames, radius, 3, model_config=TINY)
+    for given in (frames, jnp.asarray(frames)):
+        run = jax.jit(lambda p: rollout(p, given, radius, 3, model_config=TINY))
+        np.testing.assert_allclose(np.asarray(run(params)), np.asarray(eager), rtol=0, atol=1e-6)
+        # Sized from the positions, not all N^2 slots.
+        assert f"{n * n}" not in run.lower(params).as_text()
+
+
+def test_bad_values_are_rejected(params, inputs):
+    x, a = inputs
+    with pytest.raises(ValueError, match="n_steps must be an integer"):
+        rollout(params, x, a, 2.5, model_config=TINY)
+    with pytest.raises(ValueError, match="radius must be finite and > 0"):
+        rollout(params, x, a.at[3].set(0.0), 2, model_config=TINY)
+    with pytest.raises(ValueError, match="no particles"):
+        predict_position(params, x[:, :0], a[:0], model_config=TINY)
+    # Padding radii may be anything.
+    mask = jnp.arange(N) != 3
+    predict_position(params, x, a.at[3].set(0.0), model_config=TINY, mask=mask, capacity=CAP)

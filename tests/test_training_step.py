@@ -204,3 +204,18 @@ def test_mirror_augmentation_reflects_horizontal_axes_deterministically(trajecto
     assert TrainConfig().mirror_augmentation is False
     with pytest.raises(ValueError, match="symmetric"):
         BatchStream(trajectories, mirror=True, bounds=((0.0, 1.0), (-1.0, 1.0)), **kwargs)
+
+
+def test_non_finite_padding_rows_change_nothing(trajectories):
+    stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2, shuffle=False)
+    batch = next(stream.batch(i) for i in range(stream.batches_per_epoch) if not np.all(stream.batch(i).mask))
+    batch = batch.with_capacity(CAPACITY)
+    pad = ~np.asarray(batch.mask)[:, None, :, None]
+    poisoned = batch.replace(position=jnp.where(pad, jnp.nan, batch.position))
+    state = create_train_state(jax.random.key(0), TINY, FIT, compute_normalization(trajectories))
+    clean, clean_metrics = train_step(state, batch, jax.random.key(3))
+    dirty, dirty_metrics = train_step(state, poisoned, jax.random.key(3))
+    assert float(dirty_metrics["loss"]) == float(clean_metrics["loss"])
+    assert float(dirty_metrics["grad_norm"]) == float(clean_metrics["grad_norm"])
+    for x, y in zip(jax.tree_util.tree_leaves(dirty.params), jax.tree_util.tree_leaves(clean.params)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -130,6 +130,17 @@ def park_padding(position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivit
     if mask is None:
         return position
     n, dim = position.shape[-2:]
+    parked = jnp.asarray(parking_lattice(n, dim, connectivity_radius=connectivity_radius, bounds=bounds),
+                         jax.dtypes.canonicalize_dtype(position.dtype))
+    return jnp.where(jnp.asarray(mask)[..., None], position, parked)
+
+
+def parking_lattice(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> np.ndarray:
+    """The ``(n, dim)`` float64 numpy positions :func:`park_padding` gives padding slots ``0 .. n-1``.
+
+    Numpy, so that host code can use it inside a user's ``jit`` without
+    creating tracers.
+    """
     bounds = as_bounds(bounds, dim)
     _, extent, cells, cell_size = _grid(connectivity_radius, bounds)
     per_axis = np.maximum(cells // 2, 1)
@@ -139,9 +150,15 @@ def park_padding(position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivit
     points += [(k // int(np.prod(per_axis[:d]))) % per_axis[d] for d in range(1, dim)]
     points = np.stack(points, axis=-1)
     base = np.array([b[1] for b in bounds]) + 64.0 * extent
-    parked = base + (2.0 * points + 0.5) * cell_size
-    parked = jnp.asarray(parked, jax.dtypes.canonicalize_dtype(position.dtype))
-    return jnp.where(jnp.asarray(mask)[..., None], position, parked)
+    return base + (2.0 * points + 0.5) * cell_size
+
+
+def cell_list_possible(dim: int, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> bool:
+    """Whether jax-md can build a cell list here: ``D`` of 2 or 3 and >= 3 cells per side."""
+    if dim not in (2, 3):
+        return False
+    _, _, cells, _ = _grid(connectivity_radius, as_bounds(bounds, dim))
+    return bool(np.all(cells >= 3))
 
 
 @contextlib.contextmanager
@@ -182,9 +199,8 @@ def _base_template(dim: int, connectivity_radius: float, bounds: Bounds, use_cel
     fns = _neighbor_fns(connectivity_radius, bounds, use_cells)
     with jax.ensure_compile_time_eval(), _quiet_x64_scatter():
         origin, _, _, _ = _grid(connectivity_radius, bounds)
-        dummy = park_padding(np.zeros((4, dim), np.float32), np.zeros((4,), bool), connectivity_radius=connectivity_radius,
-                             bounds=bounds)
-        dummy = jnp.asarray(np.asarray(dummy) - origin, jnp.float64 if x64 else jnp.float32)
+        dummy = parking_lattice(4, dim, connectivity_radius=connectivity_radius, bounds=bounds)
+        dummy = jnp.asarray(dummy - origin, jnp.float64 if x64 else jnp.float32)
         nbrs = fns.allocate(dummy)
     if use_cells and nbrs.cell_list_fn is None:
         raise ValueError(
@@ -309,8 +325,7 @@ def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float,
     bounds = as_bounds(bounds, dim)
     origin, extent, _, _ = _grid(connectivity_radius, bounds)
     if mask is not None:
-        parked = np.asarray(park_padding(np.zeros((n, dim)), np.zeros((n,), bool),
-                                         connectivity_radius=connectivity_radius, bounds=bounds))
+        parked = parking_lattice(n, dim, connectivity_radius=connectivity_radius, bounds=bounds)
         keep = _host_array(mask, "mask").astype(bool)
         frames = np.where(keep[None, :, None], frames, parked[None])
     # jax-md's hashing, in its float32 arithmetic.
@@ -340,7 +355,8 @@ def capacity_for(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conn
       position: ``(N, D)`` or ``(T, N, D)`` positions (the capacity fits every frame).
       mask: ``(N,)`` bool or ``None``.
       use_cell_list: ``None`` picks the cell list when ``N >=
-        CELL_LIST_MIN_PARTICLES``.
+        CELL_LIST_MIN_PARTICLES`` and jax-md can build one
+        (:func:`cell_list_possible`).
       margin: relative head-room on top of the counted pairs.
     """
     x = _host_array(position, "position")
@@ -348,7 +364,8 @@ def capacity_for(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conn
     n = frames.shape[1]
     pairs = int(np.max(host_count_pairs(frames, mask, connectivity_radius=connectivity_radius)))
     if use_cell_list is None:
-        use_cell_list = n >= CELL_LIST_MIN_PARTICLES
+        use_cell_list = n >= CELL_LIST_MIN_PARTICLES and cell_list_possible(
+            frames.shape[-1], connectivity_radius=connectivity_radius, bounds=bounds)
     cell = None
     if use_cell_list:
         occupancy = host_max_cell_occupancy(frames, mask, connectivity_radius=connectivity_radius, bounds=bounds)

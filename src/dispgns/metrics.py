@@ -594,6 +594,9 @@ def rollout_metrics(
       Values are ``nan`` where the prediction is not finite. Not jittable
       (host-level; it returns Python numbers).
     """
+    if not isinstance(input_frames, (int, np.integer)) or input_frames < 2:
+        # The constant-velocity baseline needs a velocity, i.e. two input frames.
+        raise ValueError(f"input_frames must be an integer >= 2 for rollout_metrics, got {input_frames!r}")
     prediction, truth = _check_pair(prediction, truth, input_frames)
     n_frames, n, _ = truth.shape
     dtype = truth.dtype

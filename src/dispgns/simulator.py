@@ -56,12 +56,29 @@ def _as_capacity(capacity) -> GraphCapacity | None:
     return GraphCapacity(edges=int(capacity))
 
 
+def _keep_concrete(x, dtype):
+    """``x`` as an array of ``dtype``, concrete if ``x`` is.
+
+    Inside a user's ``jit`` every ``jnp`` operation on a closed-over
+    constant returns a tracer, and a graph can only be sized from concrete
+    positions: concrete inputs are therefore converted with numpy.
+    """
+    if isinstance(x, jax.core.Tracer):
+        return jnp.asarray(x, dtype)
+    if isinstance(x, jax.Array) and x.dtype == dtype:
+        return x
+    return np.asarray(x, dtype)
+
+
+def _float_dtype(x):
+    dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
+    return jax.dtypes.canonicalize_dtype(dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.float32)
+
+
 def _check(position, radius, mask, model_config: ModelConfig, *, leading: int):
-    """Validate shapes; return arrays (float positions, radius in their dtype, bool mask)."""
-    position = jnp.asarray(position)
-    if not jnp.issubdtype(position.dtype, jnp.floating):
-        position = position.astype(jnp.float32)
-    radius = jnp.asarray(radius, position.dtype)
+    """Validate shapes; return arrays (float positions, radius in their dtype, bool mask), concrete if given so."""
+    position = _keep_concrete(position, _float_dtype(position))
+    radius = _keep_concrete(radius, position.dtype)
     c, d = model_config.input_sequence_length, model_config.dim
     if position.ndim != 3 or position.shape[0] != leading or position.shape[2] != d:
         raise ValueError(f"positions must have shape ({leading}, N, {d}) (C = input_sequence_length = {c}, "
@@ -70,10 +87,29 @@ def _check(position, radius, mask, model_config: ModelConfig, *, leading: int):
     if radius.shape != (n,):
         raise ValueError(f"radius must have shape ({n},), got {radius.shape}")
     # numpy, not jnp: a default mask must stay concrete inside a user's jit.
-    mask = np.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
+    if n == 0:
+        raise ValueError(f"positions hold no particles: shape {position.shape}")
+    mask = np.ones((n,), bool) if mask is None else _keep_concrete(mask, np.dtype(bool))
     if mask.shape != (n,):
         raise ValueError(f"mask must have shape ({n},), got {mask.shape}")
+    _check_radius(radius, mask)
     return position, radius, mask
+
+
+def _check_radius(radius, mask):
+    """Radii of real particles must be finite and > 0 (they divide features and accelerations); checked when concrete."""
+    if _is_traced(radius, mask):
+        return
+    real = np.asarray(radius)[np.asarray(mask, bool)]
+    bad = ~(np.isfinite(real) & (real > 0))
+    if np.any(bad):
+        raise ValueError(f"radius must be finite and > 0 for every real particle; got {real[bad][:5].tolist()} "
+                         f"({int(bad.sum())} bad value(s))")
+
+
+def _check_steps(n_steps):
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
+        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
 
 
 def sanitize(position_seq: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray, model_config: ModelConfig):
@@ -340,8 +376,7 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
     window, radius, mask = _check(initial_positions, radius, mask, model_config,
                                   leading=model_config.input_sequence_length)
     n = window.shape[1]
-    if n_steps < 1:
-        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    _check_steps(n_steps)
     capacity = _as_capacity(capacity)
     if _is_traced(params, window, radius, mask):
         if capacity is None:
@@ -475,8 +510,8 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
     mask = np.ones((b, n), bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (b, n):
         raise ValueError(f"mask must have shape ({b}, {n}), got {mask.shape}")
-    if n_steps < 1:
-        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    _check_radius(radius, mask)
+    _check_steps(n_steps)
     if _is_traced(params, windows, radius):
         raise ValueError("rollout_batch needs concrete arrays; under a transformation use jax.vmap(rollout)")
     mask = jnp.asarray(mask)

@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from dispgns.graph import (CELL_LIST_MIN_PARTICLES, DEFAULT_BOUNDS, Bounds, GraphCapacity, host_count_pairs,
+from dispgns.graph import (CELL_LIST_MIN_PARTICLES, DEFAULT_BOUNDS, Bounds, GraphCapacity, cell_list_possible,
+                            host_count_pairs,
                            host_max_cell_occupancy)
 
 
@@ -203,7 +204,8 @@ class BatchStream:
             self.capacity_levels = sorted({self._required(q) for q in quantiles} | {self._required(self.pairs.max())})
         self.cell_capacity = None
         if use_cell_list is None:
-            use_cell_list = self.node_budgets[-1] >= CELL_LIST_MIN_PARTICLES
+            use_cell_list = self.node_budgets[-1] >= CELL_LIST_MIN_PARTICLES and cell_list_possible(
+                self.positions[0].shape[-1], connectivity_radius=self.connectivity_radius, bounds=bounds)
         if use_cell_list:
             occupancy = max(host_max_cell_occupancy(x, connectivity_radius=self.connectivity_radius, bounds=bounds)
                             for x in self.positions)

@@ -6,6 +6,8 @@ import dataclasses
 import math
 from typing import Any
 
+import numpy as np
+
 
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
@@ -56,6 +58,13 @@ class PhysicsConfig:
 
     def __post_init__(self):
         positive = ("thickness", "density", "box_half_size", "dt")
+        real = ("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff", "restitution",
+                "neighbor_skin")
+        for name in positive + real + ("cutoff",):
+            value = getattr(self, name)
+            # numpy scalars become Python floats: the config stays hashable and JSON-serialisable.
+            if isinstance(value, (np.floating, np.integer)) and not isinstance(value, bool):
+                object.__setattr__(self, name, float(value))
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):

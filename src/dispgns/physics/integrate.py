@@ -72,11 +72,15 @@ def _far_away_positions(count: int, dim: int, spacing: float, box_half_size: flo
 
 
 def _park_padding(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfig) -> jnp.ndarray:
-    """Move padding particles far outside the box so neighbour lists never pair them."""
-    if config.cutoff is None:
-        return position
+    """Move padding particles far outside the box, apart from each other.
+
+    Neighbour lists then never pair them, and whatever the caller left in
+    padding rows (NaN included) never enters the arithmetic: a masked pair
+    contributes ``0 * displacement``, which is 0 only for finite values.
+    """
     n, dim = position.shape
-    spacing = 1.01 * (config.cutoff + config.neighbor_skin)
+    reach = 2.0 * config.box_half_size if config.cutoff is None else config.cutoff + config.neighbor_skin
+    spacing = 1.01 * reach
     parked = _far_away_positions(n, dim, spacing, config.box_half_size, position.dtype)
     return jnp.where(mask[:, None], position, parked)
 
@@ -363,16 +367,18 @@ def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames:
                     collision_capacity, batched: bool):
     """Run ``n_frames * save_every`` steps of one state or a stacked batch of states.
 
-    Returns ``((state, neighbors), (xs, vs))`` with frames stacked on axis 0.
+    Returns ``((state, neighbors), (xs, vs, overflow))`` with frames stacked
+    on axis 0; ``overflow`` says whether the collision capacity had been
+    exceeded by the end of each frame.
     """
     if batched and state.position.shape[0] == 1:
         # A batch of one runs unbatched: XLA's CPU gathers with a batch
         # dimension (neighbour lists under vmap) are about 3x slower.
         squeeze = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[0], tree)
         expand = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[None], tree)
-        (state, neighbors), (xs, vs) = _advance_frames(
+        (state, neighbors), (xs, vs, flags) = _advance_frames(
             squeeze(state), squeeze(neighbors), config, n_frames, save_every, collision_capacity, False)
-        return (expand(state), expand(neighbors)), (xs[:, None], vs[:, None])
+        return (expand(state), expand(neighbors)), (xs[:, None], vs[:, None], flags[:, None])
     _, step_fn = euler_integrator(config, collision_capacity=collision_capacity)
     step = jax.vmap(step_fn) if batched else step_fn
 
@@ -384,7 +390,7 @@ def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames:
 
     def frame(carry, _):
         carry = lax.fori_loop(0, save_every, one_step, carry)
-        return carry, (carry[0].position, carry[0].velocity)
+        return carry, (carry[0].position, carry[0].velocity, carry[0].overflow)
 
     return lax.scan(frame, (state, neighbors), None, length=n_frames)
 
@@ -400,6 +406,14 @@ def _neighbor_overflow(neighbors) -> bool:
     if neighbors is None:
         return False
     return bool(np.any(np.asarray(neighbors.did_buffer_overflow)))
+
+
+def _check_collision_capacity(collision_capacity):
+    if collision_capacity is None or (isinstance(collision_capacity, str) and collision_capacity == "auto"):
+        return
+    if isinstance(collision_capacity, bool) or not isinstance(collision_capacity, (int, np.integer)) \
+            or collision_capacity < 1:
+        raise ValueError(f'collision_capacity must be "auto", None or an integer >= 1, got {collision_capacity!r}')
 
 
 def _default_collision_capacity(n: int) -> int:
@@ -469,6 +483,7 @@ def simulate(
       ``x0`` is float64 and ``jax_enable_x64`` is on, float32 otherwise.
     """
     x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=False)
+    _check_collision_capacity(collision_capacity)
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
     n, dim = x0.shape
@@ -478,9 +493,10 @@ def simulate(
         capacity = None if collision_capacity == "auto" else collision_capacity
         init_fn, _ = euler_integrator(config, collision_capacity=capacity)
         state = init_fn(x0, v0, radius, mask)
-        (final, _), (xs, vs) = _advance_frames(state, None, config, n_frames - 1, save_every, capacity, False)
-        # A traced run cannot grow capacity: poison the result rather than return a wrong one.
-        poison = jnp.where(final.overflow, jnp.nan, 0.0)
+        _, (xs, vs, flags) = _advance_frames(state, None, config, n_frames - 1, save_every, capacity, False)
+        # A traced run cannot grow capacity: poison every frame from the first
+        # overflowing one on rather than return wrong ones.
+        poison = jnp.where(flags, jnp.nan, 0.0).astype(xs.dtype)[:, None, None]
         xs, vs = xs + poison, vs + poison
         positions = _stack_frames(x0, [xs], 0)
         velocities = _stack_frames(v0, [vs], 0)
@@ -524,6 +540,7 @@ def simulate_batch(
       positions ``(B, n_frames, N, D)`` in m (and velocities if asked).
     """
     x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=True)
+    _check_collision_capacity(collision_capacity)
     if _is_traced(x0, v0, radius, mask):
         raise ValueError("simulate_batch checks overflow between chunks and needs concrete arrays; "
                          "under jit, jax.vmap(simulate) is the exact alternative")
@@ -557,6 +574,8 @@ def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacit
         capacity = _default_collision_capacity(n)
     else:
         capacity = collision_capacity
+    # Growth doubles the capacity: it must start at 1 or more.
+    capacity = None if capacity is None else max(1, capacity)
     neighbor_extra = 0
     neighbors = _allocate_neighbors(x0, mask, config, neighbor_extra) if config.cutoff is not None else None
     init_fn, _ = euler_integrator(config)
@@ -567,7 +586,7 @@ def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacit
     # past n_frames and its extra frames are dropped.
     length = max(1, min(chunk_frames, n_frames - 1))
     while done < n_frames - 1:
-        (new_state, new_neighbors), (xs, vs) = _advance_frames_jit(
+        (new_state, new_neighbors), (xs, vs, _) = _advance_frames_jit(
             state, neighbors, config, length, save_every, capacity, True)
         grow_collisions = bool(np.any(np.asarray(new_state.overflow)))
         grow_neighbors = _neighbor_overflow(new_neighbors)
