@@ -398,3 +398,14 @@ def test_cli_generate_x64_is_scoped(tmp_path):
 
 def test_dataset_error_is_a_value_error():
     assert issubclass(DatasetError, ValueError)
+
+
+def test_cli_rejects_unusable_radii_before_writing(tmp_path, capsys):
+    base = ["generate", "--preset", "tiny", "--frames", "2", "--valid-count", "0", "--test-count", "0"]
+    out = tmp_path / "a"
+    assert main(base + ["--out", str(out), "--unseen-count", "1", "--unseen-radii", "3,4",
+                        "--unseen-radii", "5,6"]) == 2
+    assert "every group needs at least one" in capsys.readouterr().err
+    assert main(base + ["--out", str(out), "--unseen-count", "0", "--radii", "0.001"]) == 2
+    assert "particle indices can address" in capsys.readouterr().err
+    assert not out.exists() and not list(tmp_path.iterdir())

@@ -120,3 +120,53 @@ def test_bad_inputs_exit_with_a_message(tiny_dataset, trained, tmp_path, capsys)
     for argv, message in cases:
         assert main(argv) == 2, argv
         assert message in capsys.readouterr().err, argv
+
+
+def test_evaluate_is_atomic_and_render_checks_what_it_is_given(tiny_dataset, trained, tmp_path, capsys):
+    out = tmp_path / "eval"
+    evaluate = ["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "test",
+                "--max-trajectories", "1", "--frames", "20", "--no-chaos", "--no-progress", "--out", str(out)]
+    assert main(evaluate) == 0
+    capsys.readouterr()
+    assert main(evaluate) == 2 and "exists and is not empty" in capsys.readouterr().err
+    assert main(evaluate + ["--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["error_curves_test.png", "metrics.json", "predictions"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging left behind
+    other = tmp_path / "precious"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    capsys.readouterr()
+    assert main(evaluate[:-1] + [str(other), "--overwrite"]) == 2
+    assert "not a dispgns evaluation" in capsys.readouterr().err and (other / "notes.txt").read_text() == "keep me"
+
+    # A short prediction (--frames 20) renders against the first 20 frames of its trajectory.
+    predictions = str(out / "predictions" / "test.h5")
+    render = ["render", "--data", str(tiny_dataset), "--no-mp4", "--predictions", predictions]
+    assert main(render + ["--split", "test", "--stride", "1", "--out", str(tmp_path / "short")]) == 0
+    assert Image.open(tmp_path / "short.gif").n_frames == 20
+    cases = [
+        (["--split", "train"], "is not a prediction of train trajectory 0"),
+        (["--split", "test", "--fps", "nan"], "--fps a finite number > 0"),
+        (["--split", "test", "--grid-frames", ","], "at least one"),
+    ]
+    for extra, message in cases:
+        assert main(render + extra + ["--out", str(tmp_path / "bad")]) == 2, extra
+        assert message in capsys.readouterr().err, extra
+    assert not list(tmp_path.glob("bad*"))
+
+
+def test_damaged_files_are_reported_not_raised(tiny_dataset, tmp_path, capsys):
+    import shutil
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(tiny_dataset, damaged)
+    raw = bytearray((damaged / "test.h5").read_bytes())
+    raw[1536:1600] = b"\xff" * 64
+    (damaged / "test.h5").write_bytes(bytes(raw))
+    assert main(["render", "--data", str(damaged), "--split", "test", "--out", str(tmp_path / "r")]) == 2
+    assert "test.h5: cannot be read" in capsys.readouterr().err
+    with h5py.File(damaged / "valid.h5", "r+") as f:
+        del f["00000"]["position"]
+        f["00000"].create_group("position")
+    with pytest.raises(Exception, match="field 'position' is not an HDF5 dataset"):
+        read_split(damaged / "valid.h5")

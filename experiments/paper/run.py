@@ -133,7 +133,8 @@ def main() -> int:
                         ("on", "with predicted centres kept inside the box (keep_inside_box)")):
         eval_dir = out / f"eval-box-{mode}"
         run_stage(["evaluate", "--model", str(run_dir), "--data", str(data), "--splits", "test", "test_unseen",
-                   "--out", str(eval_dir), "--keep-inside-box", mode] + (["--best"] if args.best else []))
+                   "--out", str(eval_dir), "--keep-inside-box", mode, "--overwrite"]
+                  + (["--best"] if args.best else []))
         evaluation = json.loads((eval_dir / "metrics.json").read_text())
         text, summary = results(evaluation, run_dir)
         texts.append(f"### {title}\n\n{text}")

@@ -2,9 +2,33 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import signal
+import threading
 
 from dispgns.cli import CLIError
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Inside the block a SIGTERM (a scheduler, ``timeout``) raises KeyboardInterrupt, as Ctrl-C does.
+
+    The command's Ctrl-C handling (checkpoint, clean-up of temporary files)
+    then runs for both. Only possible on the main thread; elsewhere a no-op.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def add_model_argument(parser) -> None:

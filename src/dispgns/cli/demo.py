@@ -41,8 +41,8 @@ def _radii(text: str) -> list[float]:
         values = [float(v) for v in text.replace(" ", "").split(",") if v]
     except ValueError:
         raise CLIError(f"--radii {text!r}: expected comma-separated radii in mm, e.g. 2.25,3.25") from None
-    if not values or any(not 0 < v < 100 for v in values):
-        raise CLIError(f"--radii {text!r}: expected radii between 0 and 100 mm (the box half-size)")
+    if not values or any(not 0 < v < 50 for v in values):
+        raise CLIError(f"--radii {text!r}: expected radii between 0 and 50 mm (half the box half-size)")
     return [round(v * 1e-3, 12) for v in values]
 
 
@@ -64,10 +64,6 @@ def run(args: argparse.Namespace) -> int:
     if args.stride < 1:
         raise CLIError(f"--stride {args.stride}: expected >= 1")
     out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
     config = PhysicsConfig()
     half, save_every = config.box_half_size, 15
     frame_dt = save_every * config.dt
@@ -78,8 +74,13 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         state = sample_initial_state(jax.random.PRNGKey(args.seed), radii, config)
-    except PlacementError as error:
-        raise CLIError(str(error)) from None
+    except (PlacementError, ValueError) as error:
+        raise CLIError(f"--radii {args.radii}: {error}") from None
+    # Created only once the inputs are known to work: a failed start leaves nothing behind.
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
     truth = np.asarray(simulate(state.position, state.velocity, state.radius, config, n_frames=args.frames,
                                 save_every=save_every)) / half
     truth = truth.astype(np.float32)

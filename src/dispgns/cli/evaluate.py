@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import add_model_argument, fmt, load_model_argument, mean_std
+from dispgns.cli._common import add_model_argument, fmt, load_model_argument, mean_std, sigterm_as_interrupt
 
 
 def register(subparsers) -> None:
@@ -30,17 +30,14 @@ def register(subparsers) -> None:
     parser.add_argument("--batch-size", type=int, default=6, metavar="B", help="trajectories rolled out together")
     parser.add_argument("--no-chaos", action="store_true", help="skip the chaos-floor reference")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier evaluation in DIR (a directory with metrics.json)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from dispgns.data import DatasetError, Trajectory, load_dataset, write_split
-    from dispgns.data.format import split_filename
-    from dispgns.evaluation import evaluate_trajectories
-    from dispgns.render import plot_rollout_errors
-    from dispgns.training.checkpoint import write_json
+    from dispgns.data import DatasetError, load_dataset
+    from dispgns.data.format import staged_directory
 
     params, model_config, info = load_model_argument(args)
     try:
@@ -56,11 +53,36 @@ def run(args: argparse.Namespace) -> int:
     if args.batch_size < 1 or (args.max_trajectories is not None and args.max_trajectories < 1):
         raise CLIError("--batch-size and --max-trajectories must be >= 1")
     out = Path(args.out)
+    # Everything is written into a staging directory renamed to --out at the
+    # end: an interrupted or failed evaluation leaves nothing half-written.
     try:
-        (out / "predictions").mkdir(parents=True, exist_ok=True)
+        with sigterm_as_interrupt(), staged_directory(out, overwrite=args.overwrite, marker=METRICS_FILE,
+                                                      kind="evaluation") as staging:
+            report = _evaluate(args, params, model_config, info, metadata, splits, staging)
+    except FileExistsError as error:
+        raise CLIError(str(error)) from None
     except OSError as error:
         raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
+    print(table(report))
+    print(f"wrote {out / METRICS_FILE}, {out / 'predictions'}/*.h5 and {out}/error_curves_*.png")
+    return 0
 
+
+METRICS_FILE = "metrics.json"
+
+
+def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> dict:
+    """Roll out, score and write predictions, plots and metrics into ``out``; returns the report."""
+    from tqdm import tqdm
+
+    from dispgns.data import Trajectory, write_split
+    from dispgns.data.format import split_filename
+    from dispgns.evaluation import evaluate_trajectories
+    from dispgns.render import plot_rollout_errors
+    from dispgns.training.checkpoint import write_json
+
+    c = model_config.input_sequence_length
+    (out / "predictions").mkdir()
     frames = args.frames or metadata.sequence_length
     report = {"model": {"source": info.get("source"), "config": model_config.to_dict(),
                         "record": info.get("record", {})},
@@ -95,10 +117,8 @@ def run(args: argparse.Namespace) -> int:
                             path=out / f"error_curves_{split}.png")
         report["splits"][split] = {"summary": result["summary"], "trajectories": result["metrics"],
                                    "chaos_floor": result["chaos_floor"]}
-    write_json(out / "metrics.json", report)
-    print(table(report))
-    print(f"wrote {out / 'metrics.json'}, {out / 'predictions'}/*.h5 and {out}/error_curves_*.png")
-    return 0
+    write_json(out / METRICS_FILE, report)
+    return report
 
 
 ROWS = (("rollout MSE", "mse"), ("RMSE (mm)", "rmse_mm"), ("RMSE (diameters)", "rmse_diameters"),

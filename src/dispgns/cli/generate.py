@@ -7,6 +7,7 @@ import contextlib
 import time
 
 from dispgns.cli import CLIError
+from dispgns.cli._common import sigterm_as_interrupt
 
 _COUNT_OPTIONS = (("train", "train"), ("valid", "valid"), ("test", "test"), ("unseen", "test_unseen"))
 
@@ -37,7 +38,9 @@ def register(subparsers) -> None:
                              "groups (the count is spread evenly over them)")
     parser.add_argument("--batch-size", type=int, metavar="B",
                         help="at most B trajectories simulated together, to save memory (default: no limit; "
-                             "groups of similar particle count are chosen automatically)")
+                             "groups of similar particle count are chosen automatically). In float32 the "
+                             "grouping changes the rounding of the chaotic dynamics: the same files need the "
+                             "same seed, spec and batch size")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DIR")
     parser.set_defaults(func=run)
 
@@ -68,6 +71,10 @@ def build_spec(args: argparse.Namespace):
         raise CLIError(f"--frames {args.frames}: expected at least 2 frames")
     radii = _parse_mm(args.radii, "--radii") if args.radii else None
     unseen = [_parse_mm(text, "--unseen-radii") for text in args.unseen_radii] if args.unseen_radii else None
+    unseen_count = counts.get("test_unseen", spec.counts.get("test_unseen", 0))
+    if unseen is not None and 0 < unseen_count < len(unseen):
+        raise CLIError(f"--unseen-radii gives {len(unseen)} groups but only {unseen_count} test_unseen "
+                       f"trajectories are asked for (--unseen-count): every group needs at least one")
     try:
         return spec.replace(n_frames=args.frames, counts=counts, radii_m=radii, unseen_radii_m=unseen,
                             precision="float64" if args.x64 else "float32")
@@ -115,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     # context keeps it local to this command (main() may be called in-process).
     precision = jax.enable_x64(True) if args.x64 else contextlib.nullcontext()
     try:
-        with precision:
+        with precision, sigterm_as_interrupt():
             metadata = generate_dataset(spec, args.out, args.seed, overwrite=args.overwrite,
                                         batch_size=args.batch_size, progress=bars)
     except (FileExistsError, PlacementError, DatasetError, ValueError) as error:

@@ -38,9 +38,12 @@ def register(subparsers) -> None:
 
 def _frames(text: str) -> list[int]:
     try:
-        return [int(v) for v in text.split(",") if v.strip()]
+        values = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise CLIError(f"--grid-frames {text!r}: expected comma-separated frame numbers") from None
+        values = []
+    if not values:
+        raise CLIError(f"--grid-frames {text!r}: expected comma-separated frame numbers, at least one")
+    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -57,17 +60,10 @@ def run(args: argparse.Namespace) -> int:
     trajectories = splits[args.split]
     if not 0 <= args.index < len(trajectories):
         raise CLIError(f"--index {args.index}: {args.split} has trajectories 0..{len(trajectories) - 1}")
-    if args.stride < 1 or args.fps <= 0:
-        raise CLIError("--stride must be >= 1 and --fps > 0")
+    if args.stride < 1 or not 0 < args.fps < float("inf"):
+        raise CLIError(f"--stride must be >= 1 and --fps a finite number > 0, got {args.stride} and {args.fps}")
     truth = trajectories[args.index]
-    frames = truth.position.shape[0]
-    grid_frames = (_frames(args.grid_frames) if args.grid_frames
-                   else np.linspace(0, frames - 1, 5).round().astype(int).tolist())
-    for f in grid_frames:
-        if not -frames <= f < frames:
-            raise CLIError(f"--grid-frames: frame {f} is outside 0..{frames - 1}")
-    if not 0 <= args.start < frames or (args.stop is not None and not args.start < args.stop <= frames):
-        raise CLIError(f"--start/--stop: expected 0 <= start < stop <= {frames}")
+    grid_text = _frames(args.grid_frames) if args.grid_frames is not None else None
     input_frames = None
     if args.predictions:
         if args.model or args.best:
@@ -78,16 +74,26 @@ def run(args: argparse.Namespace) -> int:
             raise CLIError(str(error)) from None
         if args.index >= len(predicted):
             raise CLIError(f"{args.predictions}: holds {len(predicted)} trajectories, no index {args.index}")
-        prediction = predicted[args.index].position
-        if prediction.shape != truth.position.shape:
-            raise CLIError(f"{args.predictions}: trajectory {args.index} has shape {prediction.shape}, the "
-                           f"dataset's has {truth.position.shape}: not a prediction of this trajectory")
+        prediction = np.asarray(predicted[args.index].position)
+        shape = truth.position.shape
+        # `dispgns evaluate --frames T` writes the first T frames of each trajectory, inputs included.
+        if prediction.shape[1:] != shape[1:] or not 1 <= prediction.shape[0] <= shape[0] or not np.allclose(
+                prediction[0], truth.position[0], rtol=0, atol=1e-6):
+            raise CLIError(f"{args.predictions}: trajectory {args.index} (shape {prediction.shape}) is not a "
+                           f"prediction of {args.split} trajectory {args.index} (shape {shape}): it must start "
+                           f"from the same frame 0{_split_note(predicted[args.index], args.split)}")
     else:
         params, model_config, _ = load_model_argument(args)
         input_frames = model_config.input_sequence_length
-        prediction = predict_trajectories(params, [truth], model_config=model_config)[0]
-    truth_frames = np.asarray(truth.position)
-    prediction = np.asarray(prediction)
+        prediction = np.asarray(predict_trajectories(params, [truth], model_config=model_config)[0])
+    frames = prediction.shape[0]
+    truth_frames = np.asarray(truth.position)[:frames]
+    grid_frames = grid_text if grid_text is not None else np.linspace(0, frames - 1, 5).round().astype(int).tolist()
+    for f in grid_frames:
+        if not -frames <= f < frames:
+            raise CLIError(f"--grid-frames: frame {f} is outside 0..{frames - 1}")
+    if not 0 <= args.start < frames or (args.stop is not None and not args.start < args.stop <= frames):
+        raise CLIError(f"--start/--stop: expected 0 <= start < stop <= {frames}")
     prefix = Path(args.out)
     if prefix.suffix.lower() in (".gif", ".mp4", ".png"):
         prefix = prefix.with_suffix("")
@@ -105,3 +111,10 @@ def run(args: argparse.Namespace) -> int:
     print("wrote " + ", ".join(written) + (f" (mp4 skipped: {files['mp4_skipped']})"
                                            if files["mp4_skipped"] and not args.no_mp4 else ""))
     return 0
+
+
+
+def _split_note(trajectory, split: str) -> str:
+    """``"; it was predicted for split X"`` when the trajectory's ``split`` attribute names another split."""
+    written = trajectory.attrs.get("split")
+    return f"; it was predicted for split {written!r}" if written is not None and str(written) != split else ""

@@ -6,13 +6,12 @@ import argparse
 import dataclasses
 import os
 import shutil
-import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
 from dispgns.cli import CLIError
+from dispgns.cli._common import sigterm_as_interrupt
 
 # Training fields that may change when a run is resumed: they decide how long
 # and how often, not what is learned.
@@ -279,14 +278,11 @@ def run(args: argparse.Namespace) -> int:
                               and isinstance(v, float))
             progress.write(f"step {record['step']}: {shown}")
 
-    previous = signal.signal(signal.SIGTERM, _interrupt) if threading.current_thread() is threading.main_thread() \
-        else None
     try:
-        result = train(state, stream, key, until_step=last, validator=validator, checkpointer=checkpointer,
-                       on_step=progress.step, on_log=on_log)
+        with sigterm_as_interrupt():
+            result = train(state, stream, key, until_step=last, validator=validator, checkpointer=checkpointer,
+                           on_step=progress.step, on_log=on_log)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
         progress.close()
         checkpointer.close()
     state = result.state
@@ -301,11 +297,6 @@ def run(args: argparse.Namespace) -> int:
         return 130
     print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
     return 0
-
-
-def _interrupt(signum, frame):
-    # A scheduler's SIGTERM (or `timeout`) stops the run like Ctrl-C: checkpoint, then exit.
-    raise KeyboardInterrupt
 
 
 def _plot_log(records, path: Path, plot) -> None:

@@ -493,7 +493,7 @@ def write_metadata(directory: str | os.PathLike, metadata: DatasetMetadata) -> P
     return path
 
 
-def _check_target(out_dir: Path, overwrite: bool) -> None:
+def _check_target(out_dir: Path, overwrite: bool, marker: str = METADATA_FILE, kind: str = "dataset") -> None:
     if out_dir.exists() or out_dir.is_symlink():
         if not out_dir.is_dir():
             raise FileExistsError(f"{out_dir} exists and is not a directory")
@@ -501,9 +501,9 @@ def _check_target(out_dir: Path, overwrite: bool) -> None:
             if not overwrite:
                 raise FileExistsError(f"{out_dir} exists and is not empty; choose another directory or "
                                       f"allow overwriting it (overwrite=True, --overwrite)")
-            if not (out_dir / METADATA_FILE).is_file():
-                raise FileExistsError(f"refusing to overwrite {out_dir}: it is not a dispgns dataset "
-                                      f"(no {METADATA_FILE})")
+            if not (out_dir / marker).is_file():
+                raise FileExistsError(f"refusing to overwrite {out_dir}: it is not a dispgns {kind} "
+                                      f"(no {marker})")
 
 
 def _move_into_place(staging: Path, out_dir: Path) -> None:
@@ -524,23 +524,25 @@ def _move_into_place(staging: Path, out_dir: Path) -> None:
 
 
 @contextlib.contextmanager
-def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
-    """Build a dataset directory atomically.
+def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False, marker: str = METADATA_FILE,
+                     kind: str = "dataset") -> Iterator[Path]:
+    """Build an output directory (by default a dataset) atomically.
 
     Yields a fresh temporary directory beside ``out_dir`` (same file system);
     when the block finishes it is renamed to ``out_dir``, and when the block
     raises it is removed together with any parent directories created for it.
 
     ``out_dir`` may be missing or empty; a non-empty one is replaced only with
-    ``overwrite`` and only if it holds a dispgns dataset (``metadata.json``),
-    and only once the new one is complete.
+    ``overwrite`` and only if it holds a dispgns ``kind`` (its ``marker``
+    file, ``metadata.json`` for a dataset), and only once the new one is
+    complete.
 
     Raises:
       FileExistsError: ``out_dir`` holds something that may not be replaced.
       OSError: the parent directory cannot be written.
     """
     out_dir = Path(out_dir).absolute()
-    _check_target(out_dir, overwrite)
+    _check_target(out_dir, overwrite, marker, kind)
     created = []
     for parent in reversed(out_dir.parents):
         if not parent.exists():
@@ -600,6 +602,17 @@ def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None)
         file = h5py.File(path, "r")
     except OSError as error:
         raise DatasetError(f"{name}: cannot be opened as HDF5: {error}") from None
+    try:
+        return _read_trajectories(file, name, expected, metadata)
+    except DatasetError:
+        raise
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError) as error:
+        # h5py reports damage inside a file that opened as any of these.
+        raise DatasetError(f"{name}: cannot be read, the file is damaged or not written by dispgns "
+                           f"({type(error).__name__}: {error})") from None
+
+
+def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajectory]:
     trajectories = []
     with file:
         # Rollouts written by `dispgns evaluate` may leave the box (see validate_trajectory).
@@ -622,6 +635,8 @@ def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None)
             fields = {}
             for field in ("position", "radius", "particle_type") + _INITIAL_FIELDS:
                 if field in group:
+                    if not isinstance(group[field], h5py.Dataset):
+                        _fail(where, f"field {field!r} is not an HDF5 dataset")
                     fields[field] = np.asarray(group[field][()])
                 elif field in ("position", "radius", "particle_type"):
                     _fail(where, f"missing field {field!r}")

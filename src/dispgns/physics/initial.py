@@ -44,7 +44,14 @@ def particle_count_range(start_height: float, max_radius: float, config: Physics
     half = config.box_half_size
     region = (2.0 * half) ** (dim - 1) * (half - start_height)
     n_scale = int(0.7 * region / (2.0 * max_radius) ** dim)
+    if n_scale + 3 > _MAX_PARTICLES:
+        raise ValueError(f"largest radius {max_radius} m gives {n_scale:,} particles in the box, more than the "
+                         f"{_MAX_PARTICLES:,} particle indices can address: use larger radii")
     return n_scale, n_scale + 3
+
+
+# Particle indices (neighbour lists, graphs) are int32.
+_MAX_PARTICLES = 2**31 - 1
 
 
 def place_particles(key, radius, start_height, config: PhysicsConfig, *, dim: int = 2, candidates: int = 64,

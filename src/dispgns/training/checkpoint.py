@@ -248,6 +248,9 @@ class Checkpointer:
         except (ValueError, KeyError, TypeError) as error:
             raise CheckpointError(f"{manager.directory}/{step}: does not match the run's configuration "
                                   f"({error})") from None
+        except Exception as error:  # tensorstore raises bare Exceptions for damaged array files
+            raise CheckpointError(f"{manager.directory}/{step}: cannot be read, the checkpoint is damaged "
+                                  f"({type(error).__name__}: {str(error).splitlines()[0][:300]})") from None
         tree, extra = restored["state"], restored["extra"]
         state = template.replace(params=tree["params"], opt_state=tree["opt_state"], step=tree["step"])
         return state, jax.random.wrap_key_data(tree["key"]), dict(extra)
