@@ -195,3 +195,28 @@ def test_cli_train_bad_inputs_leave_nothing(tiny_dataset, tmp_path, capsys):
     fails("--data", str(tiny_dataset), "--out", str(occupied), match="exists and is not empty")
     fails("--data", str(tiny_dataset), "--out", str(occupied), "--overwrite", match="not a dispgns run")
     assert sorted(p.name for p in occupied.iterdir()) == ["notes.txt"]
+
+
+def test_interrupt_during_a_save_waits_for_it_then_stops(data, tiny_model_config, tmp_path, monkeypatch):
+    import os
+    import signal
+
+    state, stream, key = fresh(data, tiny_model_config)
+    checkpointer = Checkpointer(tmp_path / "run", keep=2)
+    manager = checkpointer._last
+    save = manager.save
+    saved = []
+
+    def interrupted_save(step, *args, **kwargs):
+        saved.append(step)
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C just as orbax starts writing the step
+        return save(step, *args, **kwargs)
+
+    monkeypatch.setattr(manager, "save", interrupted_save)
+    result = train(state, stream, key, until_step=30, checkpointer=checkpointer)
+    assert result.interrupted and int(result.state.step) == 10 and checkpointer.latest_step() == 10
+    assert saved == [10]  # the interrupt handling did not save step 10 a second time
+    assert not list((tmp_path / "run").rglob("*orbax-checkpoint-tmp*"))
+    restored, _, extra = checkpointer.restore(state, key)
+    assert int(restored.step) == 10 and extra["data_position"] == 10
+    checkpointer.close()

@@ -25,10 +25,13 @@ library modules that write files, and only at the paths they are given.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -173,6 +176,29 @@ def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[s
             "key": jax.random.key_data(key), "data_position": np.asarray(data_position, np.int32)}
 
 
+@contextlib.contextmanager
+def _interrupts_held():
+    """Hold Ctrl-C and SIGTERM back until the block is done, then raise KeyboardInterrupt.
+
+    Orbax finishes a save in a background thread: an interrupt in the middle
+    would leave it running while the caller's interrupt handling saves the
+    same step again. Only possible on the main thread; elsewhere a no-op.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {signum: signal.signal(signum, lambda signum, frame: received.append(signum)) for signum in held}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if received:
+        raise KeyboardInterrupt
+
+
 class Checkpointer:
     """Orbax checkpoints of one run: the last ``keep`` in ``checkpoints/``, the best one in ``best/``.
 
@@ -219,15 +245,15 @@ class Checkpointer:
                  "validation": dict(validation or {}), "validation_value": validation_value}
         tree = _state_tree(state, key, data_position)
         args = ocp.args.Composite(state=ocp.args.StandardSave(tree), extra=ocp.args.JsonSave(extra))
-        if self._last.latest_step() != step:
-            self._last.save(step, args=args)
-            self._last.wait_until_finished()
-        if validation_value is not None and np.isfinite(validation_value) and validation_value < self.best_value:
-            if self._best.latest_step() == step:
-                return
-            self._best.save(step, args=args)
-            self._best.wait_until_finished()
-            self.best_value = float(validation_value)
+        with _interrupts_held():
+            if self._last.latest_step() != step:
+                self._last.save(step, args=args)
+                self._last.wait_until_finished()
+            if validation_value is not None and np.isfinite(validation_value) and validation_value < self.best_value:
+                if self._best.latest_step() != step:
+                    self._best.save(step, args=args)
+                    self._best.wait_until_finished()
+                self.best_value = float(validation_value)
 
     def restore(self, template: TrainState, key: jax.Array, *, step: int | None = None, best: bool = False
                 ) -> tuple[TrainState, jax.Array, dict[str, Any]]:
