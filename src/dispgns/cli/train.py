@@ -99,7 +99,9 @@ def resolve_configs(args: argparse.Namespace, default_connectivity_radius: float
     model_values = dict(values["model"])
     if "connectivity_radius" not in model_values and default_connectivity_radius is not None:
         model_values["connectivity_radius"] = float(default_connectivity_radius)
-    where = args.config or "--set"
+    flags = [flag for flag, used in (("--set", args.overrides), ("--steps", args.steps is not None)) if used]
+    # Name every source the values came from: the YAML file may not be the culprit.
+    where = " + ".join(([args.config] if args.config else []) + flags) or "defaults"
     try:
         model_config = ModelConfig.from_dict(model_values)
     except (TypeError, ValueError) as error:
