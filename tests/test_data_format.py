@@ -220,6 +220,13 @@ def test_trajectory_groups_must_be_numbered(dataset):
          r"'radii'\['train'\] groups hold 2 trajectories, expected 5"),
         (lambda d: d["physics"].update(density=-1.0), r"'physics' is not a valid PhysicsConfig"),
         (lambda d: d.update(format_version=99), r"'format_version' is 99, expected 1"),
+        (lambda d: d.update(seed="abc"), r"'seed' is 'abc', expected null or an integer"),
+        (lambda d: d.update(seed=-5), r"'seed' is -5"),
+        (lambda d: d.update(has_initial_state="yes"), r"'has_initial_state' is 'yes', expected true or false"),
+        (lambda d: d["trajectory_counts"].update(train=True), r"'trajectory_counts'\['train'\] is True"),
+        (lambda d: d["radii"]["train"][0].update(radii_m=[-0.002]), r"'radii'\['train'\] radii_m \[-0.002\], expected"),
+        (lambda d: d.update(split_ids={"train": "x"}), r"'split_ids' is"),
+        (lambda d: d.update(source=5), r"'source' is 5, expected a string"),
     ],
 )
 def test_read_metadata_rejects_bad_json(dataset, edit, message):

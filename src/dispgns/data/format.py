@@ -305,7 +305,7 @@ class DatasetMetadata:
              f"'trajectory_counts' is {self.trajectory_counts!r}, expected a mapping split -> count")
         for split, count in self.trajectory_counts.items():
             need(split in SPLITS, f"'trajectory_counts' has unknown split {split!r}, expected one of {list(SPLITS)}")
-            need(isinstance(count, int) and count >= 1,
+            need(_is_int(count) and count >= 1,
                  f"'trajectory_counts'[{split!r}] is {count!r}, expected an integer >= 1")
         need(isinstance(self.radii, Mapping) and set(self.radii) == set(self.trajectory_counts),
              f"'radii' has splits {sorted(self.radii) if isinstance(self.radii, Mapping) else self.radii!r}, "
@@ -315,10 +315,25 @@ class DatasetMetadata:
             for group in groups:
                 need(isinstance(group, Mapping) and {"count", "radii_m"} <= set(group),
                      f"'radii'[{split!r}] entry {group!r}, expected a mapping with 'count' and 'radii_m'")
+                need(_is_int(group["count"]) and group["count"] >= 0,
+                     f"'radii'[{split!r}] count {group['count']!r}, expected an integer >= 0")
+                radii_m = group["radii_m"]
+                need(isinstance(radii_m, Sequence) and not isinstance(radii_m, str) and len(radii_m) > 0
+                     and all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+                             for r in radii_m),
+                     f"'radii'[{split!r}] radii_m {radii_m!r}, expected a non-empty list of radii > 0 (m)")
                 total += group["count"]
             need(total == self.trajectory_counts[split],
                  f"'radii'[{split!r}] groups hold {total} trajectories, expected "
                  f"{self.trajectory_counts[split]} (trajectory_counts)")
+        need(isinstance(self.has_initial_state, bool),
+             f"'has_initial_state' is {self.has_initial_state!r}, expected true or false")
+        need(self.seed is None or (_is_int(self.seed) and 0 <= self.seed < 2**32),
+             f"'seed' is {self.seed!r}, expected null or an integer in [0, 2^32)")
+        need(self.split_ids is None or (isinstance(self.split_ids, Mapping)
+                                        and all(_is_int(v) for v in self.split_ids.values())),
+             f"'split_ids' is {self.split_ids!r}, expected null or a mapping split -> integer")
+        need(isinstance(self.source, str), f"'source' is {self.source!r}, expected a string")
         if self.particle_counts is not None:
             need(isinstance(self.particle_counts, Mapping) and set(self.particle_counts) == set(self.trajectory_counts),
                  f"'particle_counts' has splits {sorted(self.particle_counts)}, expected "
@@ -397,6 +412,11 @@ class DatasetMetadata:
         if self.particle_counts is not None:
             expected["particles"] = list(self.particle_counts[split])
         return expected
+
+
+def _is_int(value) -> bool:
+    """An integer in JSON terms (``true`` is not a count)."""
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 # ----------------------------------------------------------------------------- atomic writes
