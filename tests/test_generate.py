@@ -238,6 +238,7 @@ def test_batches_keep_trajectories_in_order(tmp_path, monkeypatch):
         for t in trajectories:
             np.testing.assert_allclose(t.position[5], t.initial_position / 0.1 + [5e-5, 0], atol=1e-6)
     assert metadata.particle_counts["train"] == [t.n_particles for t in splits["train"]]
+    assert metadata.batch_size == 2 and load_dataset(tmp_path / "out")[0].batch_size == 2
 
 
 def test_plan_batches():

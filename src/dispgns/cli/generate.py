@@ -40,7 +40,7 @@ def register(subparsers) -> None:
                         help="at most B trajectories simulated together, to save memory (default: no limit; "
                              "groups of similar particle count are chosen automatically). In float32 the "
                              "grouping changes the rounding of the chaotic dynamics: the same files need the "
-                             "same seed, spec and batch size")
+                             "same seed, spec and batch size (recorded in metadata.json)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DIR")
     parser.set_defaults(func=run)
 

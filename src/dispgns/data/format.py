@@ -235,6 +235,10 @@ class DatasetMetadata:
       particle_counts: per split, the particle count N of every trajectory
         (``None``: not recorded).
       bounds: ``((-1, 1),) * D``, the normalised box.
+      batch_size: the most trajectories simulated together when generating
+        (``None``: no limit, or not recorded). In float32 the grouping changes
+        the rounding of the chaotic dynamics, so reproducing the files needs
+        it as well as the seed.
       dispgns_version: version of dispgns that wrote the dataset.
       format_version: version of this format.
     """
@@ -257,6 +261,7 @@ class DatasetMetadata:
     preset: str | None = None
     particle_counts: Mapping[str, Sequence[int]] | None = None
     bounds: tuple[tuple[float, float], ...] | None = None
+    batch_size: int | None = None
     dispgns_version: str | None = None
     format_version: int = FORMAT_VERSION
 
@@ -334,6 +339,8 @@ class DatasetMetadata:
                                         and all(_is_int(v) for v in self.split_ids.values())),
              f"'split_ids' is {self.split_ids!r}, expected null or a mapping split -> integer")
         need(isinstance(self.source, str), f"'source' is {self.source!r}, expected a string")
+        need(self.batch_size is None or (_is_int(self.batch_size) and self.batch_size >= 1),
+             f"'batch_size' is {self.batch_size!r}, expected null or an integer >= 1")
         if self.particle_counts is not None:
             need(isinstance(self.particle_counts, Mapping) and set(self.particle_counts) == set(self.trajectory_counts),
                  f"'particle_counts' has splits {sorted(self.particle_counts)}, expected "
@@ -373,6 +380,7 @@ class DatasetMetadata:
             "has_initial_state": self.has_initial_state,
             "precision": self.precision,
             "seed": self.seed,
+            "batch_size": self.batch_size,
             "key_derivation": self.key_derivation,
             "split_ids": None if self.split_ids is None else dict(self.split_ids),
             "particle_counts": None if self.particle_counts is None

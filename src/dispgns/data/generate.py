@@ -555,9 +555,9 @@ def generate_dataset(
     trajectories are simulated in groups of similar particle count chosen by
     :func:`plan_batches`, up to :data:`LANES` groups at once in threads, and
     the dataset is written to a staging directory that is renamed into place.
-    The same seed and spec give the same files (on the same machine and
-    software: the float32 dynamics is chaotic, so different CPUs or XLA
-    versions diverge visibly over 500 frames).
+    The same seed, spec and ``batch_size`` give the same files (on the same
+    machine and software: the float32 dynamics is chaotic, so a different
+    grouping, CPU or XLA version diverges visibly over 500 frames).
 
     Args:
       spec: what to generate.
@@ -568,7 +568,8 @@ def generate_dataset(
       overwrite: replace an existing dataset.
       batch_size: at most this many trajectories per ``simulate_batch``
         call (``None``: no limit, the fastest; smaller only to save memory).
-        The grouping is chosen by :func:`plan_batches`.
+        The grouping is chosen by :func:`plan_batches`; the value is recorded
+        in the metadata.
       progress: optional ``progress(stage, done, total)`` callback.
 
     Returns:
@@ -640,6 +641,7 @@ def generate_dataset(
             physics=config.to_dict(),
             has_initial_state=True,
             seed=seed,
+            batch_size=batch_size,
             key_derivation=KEY_DERIVATION,
             split_ids={split: SPLIT_IDS[split] for split in spec.splits},
             precision=spec.precision,
