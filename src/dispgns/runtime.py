@@ -8,8 +8,8 @@ every step touches half a gigabyte of new pages: measured here, ~125,000
 page faults per training step, 15-20 % of its time. :func:`tune_host_allocator`
 makes glibc keep such blocks in its heap and reuse them.
 
-``import dispgns`` calls it (before it imports jax-md, whose import already
-starts JAX's CPU backend), so scripts, notebooks and the command line all get
+``import dispgns`` calls it first (before any module that starts JAX's CPU
+backend, e.g. jax-md's), so scripts, notebooks and the command line all get
 it; set the environment variable ``DISPGNS_TUNE_ALLOCATOR=0`` to leave glibc's
 defaults alone. It changes no result, only where memory comes from; the price
 is that up to ``keep_free_bytes`` of freed memory stays with the process
