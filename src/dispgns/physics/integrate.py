@@ -474,7 +474,9 @@ def simulate(
       collision_capacity: ``"auto"`` (a small capacity, grown on overflow
         when the inputs are concrete, exact all-particle path under a JAX
         transformation), ``None`` (always the exact all-particle path) or an
-        int (the starting capacity).
+        int >= 1 (the starting capacity; under a transformation it cannot
+        grow, and every frame from the first one that overflowed it on is
+        NaN).
       chunk_frames: frames per compiled chunk between overflow checks.
 
     Returns:
