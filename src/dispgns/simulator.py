@@ -86,9 +86,9 @@ def _check(position, radius, mask, model_config: ModelConfig, *, leading: int):
     n = position.shape[1]
     if radius.shape != (n,):
         raise ValueError(f"radius must have shape ({n},), got {radius.shape}")
-    # numpy, not jnp: a default mask must stay concrete inside a user's jit.
     if n == 0:
         raise ValueError(f"positions hold no particles: shape {position.shape}")
+    # numpy, not jnp: a default mask must stay concrete inside a user's jit.
     mask = np.ones((n,), bool) if mask is None else _keep_concrete(mask, np.dtype(bool))
     if mask.shape != (n,):
         raise ValueError(f"mask must have shape ({n},), got {mask.shape}")

@@ -113,7 +113,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-
 def _split_note(trajectory, split: str) -> str:
     """``"; it was predicted for split X"`` when the trajectory's ``split`` attribute names another split."""
     written = trajectory.attrs.get("split")

@@ -31,8 +31,7 @@ import numpy as np
 from flax import struct
 
 from dispgns.graph import (CELL_LIST_MIN_PARTICLES, DEFAULT_BOUNDS, Bounds, GraphCapacity, cell_list_possible,
-                            host_count_pairs,
-                           host_max_cell_occupancy)
+                           host_count_pairs, host_max_cell_occupancy)
 
 
 @struct.dataclass

@@ -58,18 +58,17 @@ class PhysicsConfig:
 
     def __post_init__(self):
         positive = ("thickness", "density", "box_half_size", "dt")
-        real = ("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff", "restitution",
-                "neighbor_skin")
-        for name in positive + real + ("cutoff",):
+        nonnegative = ("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff")
+        for name in positive + nonnegative + ("restitution", "neighbor_skin", "cutoff"):
             value = getattr(self, name)
             # numpy scalars become Python floats: the config stays hashable and JSON-serialisable.
-            if isinstance(value, (np.floating, np.integer)) and not isinstance(value, bool):
+            if isinstance(value, (np.floating, np.integer)):
                 object.__setattr__(self, name, float(value))
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in ("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff"):
+        for name in nonnegative:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be a finite number >= 0, got {value!r}")

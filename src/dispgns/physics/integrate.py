@@ -409,7 +409,8 @@ def _neighbor_overflow(neighbors) -> bool:
 
 
 def _check_collision_capacity(collision_capacity):
-    if collision_capacity is None or (isinstance(collision_capacity, str) and collision_capacity == "auto"):
+    # Growth doubles the capacity, so an int must start at 1 or more.
+    if collision_capacity is None or isinstance(collision_capacity, str) and collision_capacity == "auto":
         return
     if isinstance(collision_capacity, bool) or not isinstance(collision_capacity, (int, np.integer)) \
             or collision_capacity < 1:
@@ -576,8 +577,6 @@ def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacit
         capacity = _default_collision_capacity(n)
     else:
         capacity = collision_capacity
-    # Growth doubles the capacity: it must start at 1 or more.
-    capacity = None if capacity is None else max(1, capacity)
     neighbor_extra = 0
     neighbors = _allocate_neighbors(x0, mask, config, neighbor_extra) if config.cutoff is not None else None
     init_fn, _ = euler_integrator(config)

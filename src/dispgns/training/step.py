@@ -187,9 +187,6 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
     c = model_config.input_sequence_length
     k = train_config.pushforward_steps
     position, radius, mask = batch.position, batch.radius, batch.mask
-    # Padding rows are masked out of the loss, but a NaN there would still
-    # come back through the gradient of the masked select: zero them first.
-    position = jnp.where(mask[:, None, :, None], position, 0.0).astype(position.dtype)
     keys = jax.random.split(key, position.shape[0])
     inputs = position[:, :c]
     windows = inputs + jax.vmap(lambda key, x, m: random_walk_noise(key, x, train_config.noise_std, m))(
@@ -212,6 +209,9 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
     target = jax.vmap(target_acceleration)(position[:, c + k], position[:, c + k - 1], windows) / a[..., None]
     norm = params["normalization"]
     target = (target - norm["acceleration_mean"]) / norm["acceleration_std"]
+    # The loss masks padding rows out, but a NaN target there would still come
+    # back through the gradient of that masked select (0 * NaN): zero it.
+    target = jnp.where(mask[..., None], target, 0.0)
     return x, a, graphs, target, overflow
 
 
