@@ -111,7 +111,20 @@ def interaction_force(
     # (Q, N, D) arrays reduced over a minor axis of size 2.
     displacement = [query[:, d][:, None] - position[:, d][None, :] for d in range(dim)]
     valid = mask[None, :] & (jnp.arange(n)[None, :] != query_index[:, None]) & query_valid[:, None]
-    return _sum_pair_forces(displacement, valid, a_i, radius[None, :], config)
+    coeff = _pair_coefficient(displacement, valid, a_i, radius[None, :], config)
+    # sum_j c_qj (y_q - x_j) = y_q sum_j c_qj - (c x)_q: one matrix product
+    # instead of D row reductions of (Q, N) products, a third of the cost of a
+    # step at N = 220 on CPU. Centring the coordinates on the real particles
+    # keeps the cancellation between the two terms small: in a settled bed the
+    # float32 error is that of the direct sum (2e-4 of a particle's weight at
+    # most, from the coefficients). Padding rows are parked at finite
+    # positions and have c = 0.
+    count = jnp.maximum(jnp.sum(mask), 1).astype(position.dtype)
+    centre = jnp.sum(jnp.where(mask[:, None], position, 0.0), axis=0) / count
+    others = position - centre
+    sums = jnp.dot(coeff, jnp.concatenate([others, jnp.ones((n, 1), position.dtype)], axis=1),
+                   precision=lax.Precision.HIGHEST)
+    return (query - centre) * sums[:, dim:] - sums[:, :dim]
 
 
 def neighbor_table(position: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
