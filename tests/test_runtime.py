@@ -1,10 +1,15 @@
-"""The host-allocator tuning that ``import dispgns`` applies (Linux/glibc only)."""
+"""The host-allocator tuning that ``import dispgns`` applies (Linux/glibc only) and the physics' compiler options."""
 
 import os
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
+
+from dispgns import runtime
 
 # A jitted function whose execution needs an ~80 MB temporary buffer: with
 # glibc's defaults every call maps fresh pages for it (one page fault per
@@ -51,3 +56,25 @@ def test_bad_keep_free_bytes_is_rejected():
     for bad in (0, 2 ** 31):
         with pytest.raises(ValueError, match="keep_free_bytes"):
             tune_host_allocator(bad)
+
+
+def test_physics_jit_compiles_with_the_options_at_top_level_only(monkeypatch):
+    # An option value XLA rejects shows which calls compile with the options.
+    monkeypatch.setattr(runtime, "physics_compiler_options", lambda: {"xla_cpu_prefer_vector_width": "wide"})
+    rejected = runtime.physics_jit(lambda x: jnp.sin(x) * 2.0)
+    x = jnp.linspace(0.0, 1.0, 5)
+    with pytest.raises(Exception, match="xla_cpu_prefer_vector_width"):
+        rejected(x)
+    # Inside the caller's transformations it is a plain nested jit.
+    expected = np.sin(np.asarray(x)) * 2.0
+    np.testing.assert_allclose(np.asarray(jax.jit(rejected)(x)), expected, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.vmap(rejected)(x)), expected, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.grad(lambda y: jnp.sum(rejected(y)))(x)), 2.0 * np.cos(np.asarray(x)),
+                               rtol=1e-6)
+
+
+def test_physics_jit_with_the_real_options_equals_plain_jit():
+    f = lambda x: jnp.sum(jnp.exp(-x[:, None] * x[None, :]), axis=1)
+    x = jnp.linspace(0.0, 2.0, 300)
+    np.testing.assert_allclose(np.asarray(runtime.physics_jit(f)(x)), np.asarray(jax.jit(f)(x)), rtol=1e-6)
+

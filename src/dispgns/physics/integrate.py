@@ -31,6 +31,7 @@ from jax_md import partition
 from dispgns.physics.config import PhysicsConfig
 from dispgns.physics.forces import external_force, interaction_force, neighbor_force, neighbor_table, particle_mass
 from dispgns.physics.walls import resolve_walls
+from dispgns.runtime import physics_jit
 
 
 @md_dataclasses.dataclass
@@ -298,6 +299,10 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         velocities makes rebuilds rarer), checking
         ``did_buffer_overflow`` afterwards. Without one, pairs are still cut
         off at ``config.cutoff`` but found by the all-pairs ``N x N`` path.
+
+    On the CPU, ``jax.jit(loop, compiler_options=dispgns.physics_compiler_options())``
+    compiles a loop over ``step_fn`` as :func:`simulate` compiles its own
+    (512-bit vector loops, ~1.6x faster on AVX-512 machines).
     """
 
     def init_fn(position, velocity, radius, mask=None) -> SimState:
@@ -395,7 +400,7 @@ def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames:
     return lax.scan(frame, (state, neighbors), None, length=n_frames)
 
 
-_advance_frames_jit = jax.jit(_advance_frames, static_argnums=(2, 3, 4, 5, 6))
+_advance_frames_jit = physics_jit(_advance_frames, static_argnums=(2, 3, 4, 5, 6))
 
 
 def _is_traced(*arrays) -> bool:
@@ -484,6 +489,10 @@ def simulate(
       positions ``(n_frames, N, D)`` in m (and velocities ``(n_frames, N, D)``
       in m/s if ``return_velocity``), in the dtype of ``x0``: float64 when
       ``x0`` is float64 and ``jax_enable_x64`` is on, float32 otherwise.
+
+    Called inside the caller's ``jax.jit``, it is compiled with that jit's
+    options: pass ``compiler_options=dispgns.physics_compiler_options()``
+    there for the speed of a direct call on the CPU.
     """
     x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=False)
     _check_collision_capacity(collision_capacity)
