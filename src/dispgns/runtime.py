@@ -18,9 +18,10 @@ first JAX computation of the process (import dispgns first, or call it
 yourself at the top of a script).
 
 :func:`physics_compiler_options` are the XLA options the ground-truth
-physics is compiled with; pass them to ``jax.jit`` when jitting
-:func:`dispgns.simulate` inside your own function, which is then compiled
-with your options instead.
+physics is compiled with. Code that calls :func:`dispgns.simulate` inside
+its own jit is compiled with that jit's options instead: pass these to the
+outermost ``jax.jit`` (JAX refuses compiler options on a jit that is nested
+in another or differentiated from outside, so put ``jax.grad`` inside it).
 """
 
 from __future__ import annotations

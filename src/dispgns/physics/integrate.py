@@ -302,7 +302,9 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
 
     On the CPU, ``jax.jit(loop, compiler_options=dispgns.physics_compiler_options())``
     compiles a loop over ``step_fn`` as :func:`simulate` compiles its own
-    (512-bit vector loops, ~1.6x faster on AVX-512 machines).
+    (512-bit vector loops, ~1.6x faster on AVX-512 machines). JAX accepts
+    the options on the outermost jit only: ``jax.jit(jax.grad(loss), ...)``,
+    not ``jax.grad`` of a jit with options.
     """
 
     def init_fn(position, velocity, radius, mask=None) -> SimState:
@@ -491,8 +493,10 @@ def simulate(
       ``x0`` is float64 and ``jax_enable_x64`` is on, float32 otherwise.
 
     Called inside the caller's ``jax.jit``, it is compiled with that jit's
-    options: pass ``compiler_options=dispgns.physics_compiler_options()``
-    there for the speed of a direct call on the CPU.
+    options: pass ``compiler_options=dispgns.physics_compiler_options()`` to
+    the outermost jit for the speed of a direct call on the CPU (JAX accepts
+    them only there: ``jax.jit(jax.grad(loss), ...)``, not ``jax.grad`` of a
+    jit with options).
     """
     x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=False)
     _check_collision_capacity(collision_capacity)
