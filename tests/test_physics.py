@@ -72,12 +72,8 @@ def test_pair_force_is_minus_gradient_of_the_potential_above_r_m_and_frozen_belo
         assert below[-1] > 0  # repulsive
 
 
-def test_float32_all_pair_forces_in_a_settled_bed_match_float64():
-    # The dense path sums pair terms as a matrix product over coordinates,
-    # which cancels; in the reference's settled bed (150 particles in contact)
-    # its float32 error stays that of the pair coefficients themselves.
-    data = np.load(Path(__file__).parent / "data" / "sedimentation.npz")
-    position, radius = data["frames"][-1], data["radius"]
+def all_pair_forces_float32_and_float64(position, radius):
+    """Dense all-pairs forces on every particle (N), computed in float32 and in float64."""
     n = len(radius)
 
     def force(dtype):
@@ -86,8 +82,21 @@ def test_float32_all_pair_forces_in_a_settled_bed_match_float64():
 
     with jax.enable_x64(True):
         exact = force(jnp.float64)
-    approx = force(jnp.float32)
-    weight = (CONFIG.density - CONFIG.fluid_density) * np.pi * radius**2 * CONFIG.thickness * CONFIG.gravity
+    return force(jnp.float32), exact
+
+
+def buoyant_weight(radius):
+    return (CONFIG.density - CONFIG.fluid_density) * np.pi * radius**2 * CONFIG.thickness * CONFIG.gravity
+
+
+def test_float32_all_pair_forces_in_a_settled_bed_match_float64():
+    # The dense path sums pair terms as a matrix product over coordinates,
+    # which cancels; in the reference's settled bed (150 particles in contact)
+    # its float32 error stays that of the pair coefficients themselves.
+    data = np.load(Path(__file__).parent / "data" / "sedimentation.npz")
+    radius = data["radius"]
+    approx, exact = all_pair_forces_float32_and_float64(data["frames"][-1], radius)
+    weight = buoyant_weight(radius)
     assert np.abs(exact).max() > 5 * weight.max()  # contacts carry the weight of the bed above
     assert np.max(np.abs(approx - exact).max(axis=1) / weight) < 1e-3
 
@@ -104,17 +113,9 @@ def test_float32_all_pair_forces_across_a_wide_packed_bed_stay_within_the_docume
               for j in range(rows) for i in range(cols)]
     jitter = np.random.default_rng(0).uniform(-0.01, 0.01, (len(points), 2)) * a
     position = (np.array(points) + jitter).astype(np.float32).astype(np.float64)
-    radius = np.full(len(position), a)
-    n = len(radius)
-
-    def force(dtype):
-        x, r = jnp.asarray(position, dtype), jnp.asarray(radius, dtype)
-        return np.asarray(interaction_force(x, jnp.arange(n), x, r, jnp.ones(n, bool), CONFIG), np.float64)
-
-    with jax.enable_x64(True):
-        exact = force(jnp.float64)
-    error = np.abs(force(jnp.float32) - exact).max(axis=1)
-    weight = (CONFIG.density - CONFIG.fluid_density) * np.pi * a**2 * CONFIG.thickness * CONFIG.gravity
+    approx, exact = all_pair_forces_float32_and_float64(position, np.full(len(position), a))
+    error = np.abs(approx - exact).max(axis=1)
+    weight = buoyant_weight(a)
     assert error.max() < 3e-3 * weight
     assert error.max() < 1e-4 * np.abs(exact).max()
 

@@ -118,7 +118,7 @@ def interaction_force(
     # grows with |x_j - centre| / r_qj: centring on the real particles keeps
     # it at the direct sum's in the reference's settled bed (2e-4 of a
     # particle's weight at most, in float32), while 1 mm disks packed across
-    # the whole box see ~13x the direct sum's (1.1e-3 of the weight). The
+    # the whole box see ~13x the direct sum's (1.1-1.3e-3 of the weight). The
     # direct sum with 512-bit loops is 0.11-0.13 ms per step, above the
     # 0.1 ms target. Padding rows are parked at finite positions and have c = 0.
     count = jnp.maximum(jnp.sum(mask), 1).astype(position.dtype)
