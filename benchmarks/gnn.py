@@ -193,8 +193,9 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
     capacity = capacity_for(traj.position[start - 100:], connectivity_radius=0.2, margin=0.05)
     params = state.params if rollout_params is None else rollout_params
     steps = args.rollout_steps
-    chunk = jax.jit(lambda p, w: _scan_steps_jit(p, w, radius, mask, length=steps, capacity=capacity,
-                                                 model_config=model_config)[1])
+    # Called directly (not inside another jit) so that it compiles with dispgns.network_compiler_options.
+    chunk = lambda p, w: _scan_steps_jit(p, w, radius, mask, length=steps, capacity=capacity,
+                                         model_config=model_config)[1]
     roll_wall, roll_cpu = timed(lambda: chunk(params, window), 3)
     rollout_step = roll_wall / steps
     n_real = int(radius.shape[0])

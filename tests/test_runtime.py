@@ -78,3 +78,45 @@ def test_physics_jit_with_the_real_options_equals_plain_jit():
     x = jnp.linspace(0.0, 2.0, 300)
     np.testing.assert_allclose(np.asarray(runtime.physics_jit(f)(x)), np.asarray(jax.jit(f)(x)), rtol=1e-6)
 
+
+
+def test_network_compiler_options_depend_on_the_matmul_dtype():
+    from dispgns import ModelConfig
+    assert runtime.network_compiler_options(ModelConfig()) == {"xla_cpu_experimental_ynn_fusion_type": ""}
+    assert runtime.network_compiler_options(None) == runtime.network_compiler_options(ModelConfig())
+    assert runtime.network_compiler_options(ModelConfig(matmul_dtype="bfloat16")) == {}
+
+
+def test_network_jit_takes_the_options_of_the_calls_config_at_top_level_only(monkeypatch):
+    from dispgns import ModelConfig
+    seen = []
+
+    def options(model_config):
+        seen.append(model_config.matmul_dtype)
+        return {"xla_cpu_prefer_vector_width": "wide"} if model_config.matmul_dtype == "float32" else {}
+
+    monkeypatch.setattr(runtime, "network_compiler_options", options)
+    f = runtime.network_jit(lambda x, *, model_config: jnp.cos(x) + model_config.latent_size,
+                            static_argnames=("model_config",))
+    x = jnp.linspace(0.0, 1.0, 4)
+    with pytest.raises(Exception, match="xla_cpu_prefer_vector_width"):
+        f(x, model_config=ModelConfig())
+    expected = np.cos(np.asarray(x)) + 128.0
+    np.testing.assert_allclose(np.asarray(f(x, model_config=ModelConfig(matmul_dtype="bfloat16"))), expected,
+                               rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda y: f(y, model_config=ModelConfig()))(x)), expected,
+                               rtol=1e-6)
+    assert seen == ["float32", "bfloat16"]  # the nested call asks for no options
+    lowered = runtime.network_jit(lambda x, model_config: x * 2, static_argnums=(1,))
+    assert lowered.lower(x, ModelConfig(matmul_dtype="bfloat16")).compile()(x).shape == (4,)
+
+
+def test_options_unknown_to_jaxlib_are_dropped_with_a_warning():
+    f = runtime.cpu_jit(lambda x: jnp.tanh(x) * 3.0, options=lambda x: {"xla_cpu_option_that_does_not_exist": 1,
+                                                                           "xla_cpu_prefer_vector_width": 512})
+    x = jnp.linspace(-1.0, 1.0, 7)
+    with pytest.warns(RuntimeWarning, match="xla_cpu_option_that_does_not_exist"):
+        y = f(x)
+    np.testing.assert_allclose(np.asarray(y), np.tanh(np.asarray(x)) * 3.0, rtol=1e-6)
+    assert runtime._known_options((("xla_cpu_option_that_does_not_exist", 1), ("xla_cpu_prefer_vector_width", 512))) \
+        == (("xla_cpu_prefer_vector_width", 512),)

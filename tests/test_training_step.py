@@ -219,3 +219,16 @@ def test_non_finite_padding_rows_change_nothing(trajectories):
     assert float(dirty_metrics["grad_norm"]) == float(clean_metrics["grad_norm"])
     for x, y in zip(jax.tree_util.tree_leaves(dirty.params), jax.tree_util.tree_leaves(clean.params)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_train_step_with_network_compiler_options_equals_it_nested_in_a_plain_jit(trajectories):
+    # At top level the step compiles with dispgns.network_compiler_options; nested in
+    # the caller's jit, with that jit's (none): another matmul kernel, the same step.
+    stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2)
+    state = create_train_state(jax.random.key(0), TINY, FIT, compute_normalization(trajectories))
+    batch = stream.batch(0).with_capacity(CAPACITY)
+    tuned, tuned_metrics = train_step(state=state, batch=batch, key=jax.random.key(4))
+    plain, plain_metrics = jax.jit(train_step)(state, batch, jax.random.key(4))
+    np.testing.assert_allclose(float(tuned_metrics["loss"]), float(plain_metrics["loss"]), rtol=1e-5)
+    for a, b in zip(jax.tree_util.tree_leaves(tuned.params), jax.tree_util.tree_leaves(plain.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)

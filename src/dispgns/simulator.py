@@ -44,6 +44,7 @@ from dispgns import features as features_lib
 from dispgns import graph as graph_lib
 from dispgns.graph import Graph, GraphCapacity
 from dispgns.model import ModelConfig, apply_network
+from dispgns.runtime import network_jit
 
 
 def _is_traced(*trees) -> bool:
@@ -261,7 +262,7 @@ def _constrain(position, radius, model_config: ModelConfig):
     return jnp.clip(position, b[:, 0] + a, b[:, 1] - a)
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "model_config"))
+@functools.partial(network_jit, static_argnames=("capacity", "model_config"))
 def _step_jit(params, position_seq, radius, mask, *, capacity, model_config):
     return one_step(params, position_seq, radius, mask, capacity, model_config)
 
@@ -340,7 +341,7 @@ def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCap
     return window, positions, flags
 
 
-_scan_steps_jit = jax.jit(_scan_steps, static_argnames=("length", "capacity", "model_config"))
+_scan_steps_jit = network_jit(_scan_steps, static_argnames=("length", "capacity", "model_config"))
 
 
 def rollout(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
@@ -368,7 +369,8 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
       mask: optional ``(N,)`` bool, ``False`` for padding particles.
       capacity: optional graph capacity.
       chunk_size: static, steps per compiled chunk in the concrete path (an overflow
-        discards at most the rest of one chunk).
+        discards at most the rest of one chunk). On the CPU the chunks are
+        compiled with :func:`dispgns.network_compiler_options`.
 
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
@@ -453,7 +455,7 @@ def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, 
     return acc, next_position, overflow
 
 
-@functools.partial(jax.jit, static_argnames=("length", "capacity", "model_config"))
+@functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
 def _scan_steps_batch(params, windows, radius, mask, *, length: int, capacity: GraphCapacity,
                       model_config: ModelConfig):
     """``length`` steps of ``B`` windows ``(B, C, N, D)``: (last windows, positions (length, B, N, D), flags (length, B))."""

@@ -27,6 +27,7 @@ from dispgns import graph as graph_lib
 from dispgns.data.examples import BatchStream
 from dispgns.metrics import per_frame_mse
 from dispgns.model import ModelConfig
+from dispgns.runtime import network_jit
 from dispgns.simulator import rollout
 from dispgns.training.step import TrainConfig, TrainState, loss_fn, train_step_checked
 
@@ -100,7 +101,7 @@ class Validator:
         return out
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3))
+@functools.partial(network_jit, static_argnums=(2, 3))
 def _clean_loss(params, batch, model_config, train_config):
     return loss_fn(params["network"], params["normalization"], batch, jax.random.key(0), model_config,
                    train_config)[0]

@@ -33,6 +33,7 @@ from jax import lax
 from dispgns._config import config_from_mapping
 from dispgns.data.examples import Batch
 from dispgns.model import ModelConfig, identity_normalization, init_params
+from dispgns.runtime import network_jit
 from dispgns.simulator import build_graph, merged_edge_count, network_output_batch, one_step_batch, sanitize
 from dispgns.training.noise import random_walk_noise, target_acceleration
 
@@ -234,9 +235,13 @@ def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: 
     return loss, {"overflow": overflow}
 
 
-@jax.jit
+@functools.partial(network_jit, config_arg="state")
 def train_step(state: TrainState, batch: Batch, key: jax.Array):
     """One optimiser step (jitted; compiles once per batch shape and capacity).
+
+    On the CPU, called outside any transformation, it is compiled with
+    :func:`dispgns.network_compiler_options`; inside the caller's own ``jit``
+    it gets that jit's options.
 
     Args:
       state: :class:`TrainState`.
