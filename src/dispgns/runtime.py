@@ -134,13 +134,13 @@ def network_compiler_options(model_config=None) -> dict[str, str]:
     default) the dots are left to XLA's own kernels instead of the YNNPACK
     library that XLA hands them to by default: measured on the 2-core AMD
     EPYC machine of ``benchmarks/gnn.py``, in-process A/B over interleaved
-    rounds, the paper network's training step 186 -> 167 ms and rollout step
-    24.0 -> 22.3 ms, the shipped network's 52.9 -> 49.0 ms and 4.43 -> 4.08 ms.
-    For bfloat16 matmuls YNNPACK's kernels are the faster ones (rollout step
-    16.7 vs 24.0 ms without them), so there are no options. The ground-truth
-    physics keeps YNNPACK too (its Euler step at N = 220 is 2x faster with
-    it: 0.023 vs 0.050 ms). Float32 results may differ in the last bits (another summation
-    order), as between any two matmul kernels.
+    rounds, the paper network's training step 187 -> 167 ms and rollout step
+    24.0 -> 22.3 ms, the shipped network's 52.9 -> 49.0 ms and 4.43 -> 4.08
+    ms. For bfloat16 matmuls YNNPACK's kernels are the faster ones (rollout
+    step 16.7 vs 24.0 ms without them), so there are no options. The
+    ground-truth physics keeps YNNPACK too (its Euler step at N = 220 is 2x
+    faster with it: 0.023 vs 0.050 ms). Float32 results may differ in the
+    last bits (another summation order), as between any two matmul kernels.
 
     Args:
       model_config: a :class:`dispgns.ModelConfig` (``None``: float32).

@@ -1,0 +1,207 @@
+"""The paper network in plain PyTorch next to dispgns, timed in alternation on the same inputs.
+
+The authors' own times (``benchmarks/gnn.py``: 330 ms per training step, 49
+ms per rollout step) were measured on an earlier machine. This script gives a
+comparison on the machine at hand: the same encoder-processor-decoder (2,587,010
+parameters, the paper's defaults), features, radius graph, noise, loss and
+Adam step, written the way a PyTorch GNS usually is (per-edge concatenation
+``[x_i, x_j, e_ij]`` into the first message layer, ``index_select`` gathers,
+``index_add_`` sums, the graph from ``torch.cdist``). It is our
+re-implementation, not the authors' code. Inputs are those of
+``benchmarks/gnn.py`` (2 examples of 220 particles, ~2,400 edges each, self-loops
+included, for a training step; one for a rollout step).
+
+Rounds alternate the two frameworks (a few PyTorch steps, then a few dispgns
+steps) so that both see the same machine, whose speed drifts within minutes.
+
+    pip install torch==2.13.0      # CPU build; not a dependency of dispgns
+    python benchmarks/gnn_torch.py [--rounds 8]
+
+Prints a few lines and ends with one JSON line: medians per framework and the
+ratios ``torch / dispgns``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import torch
+from torch import nn
+
+import dispgns
+from dispgns.data.examples import BatchStream
+from dispgns.graph import capacity_for
+from dispgns.model import ModelConfig
+from dispgns.simulator import _scan_steps_jit
+from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
+from gnn import machine_info, trajectories
+
+LATENT, HIDDEN, BLOCKS, C, D = 128, 128, 10, 6, 2
+RADIUS_GRAPH, CLIP, NOISE = 0.2, 4.0, 5e-4
+
+
+def mlp(fan_in: int, out: int, layer_norm: bool = True) -> nn.Sequential:
+    layers = [nn.Linear(fan_in, HIDDEN), nn.ReLU(), nn.Linear(HIDDEN, HIDDEN), nn.ReLU(), nn.Linear(HIDDEN, out)]
+    return nn.Sequential(*layers, *([nn.LayerNorm(out)] if layer_norm else []))
+
+
+class Block(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.message, self.node, self.node_2, self.edge = (mlp(3 * LATENT, LATENT), mlp(2 * LATENT, LATENT),
+                                                           mlp(LATENT, LATENT), mlp(LATENT, LATENT))
+
+    def forward(self, x, e, senders, receivers):
+        m = self.message(torch.cat([x.index_select(0, receivers), x.index_select(0, senders), e], dim=-1))
+        summed = torch.zeros_like(x).index_add_(0, receivers, m)
+        x = x + self.node_2(self.node(torch.cat([summed, x], dim=-1)))
+        return x, e + self.edge(m)
+
+
+class Network(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.node_encoder = mlp((C - 1) * D + 2 * D + 1, LATENT)
+        self.edge_encoder = mlp(C * D + 2, LATENT)
+        self.blocks = nn.ModuleList(Block() for _ in range(BLOCKS))
+        self.decoder = mlp(LATENT, D, layer_norm=False)
+
+    def forward(self, node_features, edge_features, senders, receivers):
+        x, e = self.node_encoder(node_features), self.edge_encoder(edge_features)
+        for block in self.blocks:
+            x, e = block(x, e, senders, receivers)
+        return self.decoder(x)
+
+
+def features(position_seq, radius):
+    """The paper's node and edge features and the radius graph (self-loops included) of one example."""
+    last = position_seq[-1]
+    vel = (position_seq[1:] - position_seq[:-1]).permute(1, 0, 2).reshape(last.shape[0], -1)
+    inv_a = (1.0 / radius)[:, None]
+    walls = torch.clamp(torch.cat([last + 1.0, 1.0 - last], dim=-1) * inv_a, -CLIP, CLIP)
+    nodes = torch.cat([vel * inv_a, walls, radius[:, None]], dim=-1)
+    receivers, senders = torch.nonzero(torch.cdist(last, last) < RADIUS_GRAPH, as_tuple=True)
+    a_sum = (radius[senders] + radius[receivers])[:, None]
+    rel = (last[senders] - last[receivers]) / a_sum
+    rel_vel = (vel[senders] - vel[receivers]) / a_sum
+    edges = torch.cat([rel, torch.linalg.norm(rel, dim=-1, keepdim=True), rel_vel, a_sum], dim=-1)
+    return nodes, edges, senders, receivers
+
+
+def torch_train_step(net, opt, windows, radii, generator):
+    """One Adam step on a batch of examples (windows ``(C + 1, N, D)``), merged into one graph."""
+    node_list, edge_list, send_list, recv_list, targets, offset = [], [], [], [], [], 0
+    for window, radius in zip(windows, radii):
+        noise = torch.cumsum(torch.randn(window[:C].shape, generator=generator) * (NOISE / (C - 1) ** 0.5), 0)
+        noisy = window[:C] + noise
+        nodes, edges, s, r = features(noisy, radius)
+        targets.append((window[C] - 2 * window[C - 1] + window[C - 2] - (noise[-1] - noise[-2])) / radius[:, None])
+        node_list.append(nodes), edge_list.append(edges)
+        send_list.append(s + offset), recv_list.append(r + offset)
+        offset += nodes.shape[0]
+    out = net(torch.cat(node_list), torch.cat(edge_list), torch.cat(send_list), torch.cat(recv_list))
+    loss = torch.mean(torch.sum((out - torch.cat(targets)) ** 2, dim=-1))
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return float(loss)
+
+
+@torch.no_grad()
+def torch_rollout_step(net, window, radius):
+    nodes, edges, s, r = features(window, radius)
+    acc = net(nodes, edges, s, r) * radius[:, None]
+    nxt = 2 * window[-1] - window[-2] + acc
+    return torch.cat([window[1:], nxt[None]])
+
+
+def timed(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--rounds", type=int, default=8, help="alternating rounds (medians over them)")
+    args = parser.parse_args()
+    torch.set_num_threads(os.cpu_count() or 1)
+    torch.manual_seed(0)
+
+    trajs = trajectories(220, 110)
+    net = Network()
+    n_params = sum(p.numel() for p in net.parameters())
+    opt = torch.optim.Adam(net.parameters(), lr=1e-4)
+    generator = torch.Generator().manual_seed(0)
+
+    # dispgns: the step and inputs of benchmarks/gnn.py.
+    model_config, train_config = ModelConfig(), TrainConfig()
+    state = create_train_state(jax.random.key(0), model_config, train_config,
+                               compute_normalization(trajs, noise_std=train_config.noise_std))
+    stream = BatchStream(trajs, input_sequence_length=C, batch_size=2, connectivity_radius=RADIUS_GRAPH, seed=0)
+    late = np.flatnonzero(stream.index.start >= stream.index.start.max() - 4)
+    ids = [late[0], late[-1]]
+    batch = stream.make_batch(ids)
+    key = jax.random.key(0)
+    compiled = train_step.lower(state, batch, key).compile()
+    starts = stream.index.start[ids]
+    windows = [torch.from_numpy(np.asarray(t.position[s:s + C + 1])) for t, s in zip(
+        [trajs[int(stream.index.trajectory[i])] for i in ids], starts)]
+    radii = [torch.from_numpy(np.asarray(trajs[int(stream.index.trajectory[i])].radius)) for i in ids]
+    edges_torch = [int(features(w[:C], a)[2].shape[0]) for w, a in zip(windows, radii)]
+
+    traj = trajs[0]
+    start = traj.position.shape[0] - 6
+    jwindow = jnp.asarray(traj.position[start - 100:start - 94])
+    jradius = jnp.asarray(traj.radius)
+    mask = jnp.ones(jradius.shape, bool)
+    capacity = capacity_for(traj.position[start - 100:], connectivity_radius=RADIUS_GRAPH, margin=0.05)
+    chunk_steps = 20
+    chunk = lambda: _scan_steps_jit(state.params, jwindow, jradius, mask, length=chunk_steps, capacity=capacity,
+                                    model_config=model_config)[1]
+    twindow, tradius = torch.from_numpy(np.asarray(jwindow)), torch.from_numpy(np.asarray(jradius))
+
+    def torch_rollout(steps):
+        w = twindow
+        for _ in range(steps):
+            w = torch_rollout_step(net, w, tradius)
+        return w
+
+    # Warm-up (compilation, allocator, thread pools).
+    jax.block_until_ready(compiled(state, batch, key))
+    jax.block_until_ready(chunk())
+    torch_train_step(net, opt, windows, radii, generator)
+    torch_rollout(2)
+
+    per = 3
+    times = {k: [] for k in ("torch_train", "dispgns_train", "torch_rollout", "dispgns_rollout")}
+    for _ in range(args.rounds):
+        times["torch_train"].append(np.median([timed(lambda: torch_train_step(net, opt, windows, radii, generator))
+                                               for _ in range(per)]))
+        times["dispgns_train"].append(np.median([timed(lambda: jax.block_until_ready(compiled(state, batch, key)))
+                                                 for _ in range(per)]))
+        times["torch_rollout"].append(timed(lambda: torch_rollout(chunk_steps)) / chunk_steps)
+        times["dispgns_rollout"].append(timed(lambda: jax.block_until_ready(chunk())) / chunk_steps)
+    ms = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+    print(f"training step: PyTorch {ms['torch_train']:.1f} ms, dispgns {ms['dispgns_train']:.1f} ms; "
+          f"rollout step: PyTorch {ms['torch_rollout']:.1f} ms, dispgns {ms['dispgns_rollout']:.1f} ms", flush=True)
+    report = {
+        "machine": {**machine_info(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()},
+        "torch_parameters": n_params,
+        "edges_per_example_torch": edges_torch,
+        **{f"{k}_step_ms": v for k, v in ms.items()},
+        "train_step_ratio_torch_over_dispgns": ms["torch_train"] / ms["dispgns_train"],
+        "rollout_step_ratio_torch_over_dispgns": ms["torch_rollout"] / ms["dispgns_rollout"],
+        "rounds": args.rounds,
+    }
+    print(json.dumps(report, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+if __name__ == "__main__":
+    main()
