@@ -15,7 +15,7 @@ Rounds alternate the two frameworks (a few PyTorch steps, then a few dispgns
 steps) so that both see the same machine, whose speed drifts within minutes.
 
     pip install torch==2.13.0      # CPU build; not a dependency of dispgns
-    python benchmarks/gnn_torch.py [--rounds 8]
+    python benchmarks/gnn_torch.py [--rounds 8] [--matmul-dtype bfloat16]
 
 Prints a few lines and ends with one JSON line: medians per framework and the
 ratios ``torch / dispgns``.
@@ -110,7 +110,7 @@ def torch_train_step(net, opt, windows, radii, generator):
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
-    return float(loss)
+    return float(loss.detach())
 
 
 @torch.no_grad()
@@ -130,6 +130,8 @@ def timed(fn) -> float:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rounds", type=int, default=8, help="alternating rounds (medians over them)")
+    parser.add_argument("--matmul-dtype", default="float32", choices=("float32", "bfloat16"),
+                        help="dispgns' ModelConfig.matmul_dtype (PyTorch stays float32)")
     args = parser.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
     torch.manual_seed(0)
@@ -141,7 +143,7 @@ def main():
     generator = torch.Generator().manual_seed(0)
 
     # dispgns: the step and inputs of benchmarks/gnn.py.
-    model_config, train_config = ModelConfig(), TrainConfig()
+    model_config, train_config = ModelConfig(matmul_dtype=args.matmul_dtype), TrainConfig()
     state = create_train_state(jax.random.key(0), model_config, train_config,
                                compute_normalization(trajs, noise_std=train_config.noise_std))
     stream = BatchStream(trajs, input_sequence_length=C, batch_size=2, connectivity_radius=RADIUS_GRAPH, seed=0)
@@ -151,9 +153,9 @@ def main():
     key = jax.random.key(0)
     compiled = train_step.lower(state, batch, key).compile()
     starts = stream.index.start[ids]
-    windows = [torch.from_numpy(np.asarray(t.position[s:s + C + 1])) for t, s in zip(
+    windows = [torch.tensor(np.asarray(t.position[s:s + C + 1])) for t, s in zip(
         [trajs[int(stream.index.trajectory[i])] for i in ids], starts)]
-    radii = [torch.from_numpy(np.asarray(trajs[int(stream.index.trajectory[i])].radius)) for i in ids]
+    radii = [torch.tensor(np.asarray(trajs[int(stream.index.trajectory[i])].radius)) for i in ids]
     edges_torch = [int(features(w[:C], a)[2].shape[0]) for w, a in zip(windows, radii)]
 
     traj = trajs[0]
@@ -165,7 +167,7 @@ def main():
     chunk_steps = 20
     chunk = lambda: _scan_steps_jit(state.params, jwindow, jradius, mask, length=chunk_steps, capacity=capacity,
                                     model_config=model_config)[1]
-    twindow, tradius = torch.from_numpy(np.asarray(jwindow)), torch.from_numpy(np.asarray(jradius))
+    twindow, tradius = torch.tensor(np.asarray(jwindow)), torch.tensor(np.asarray(jradius))
 
     def torch_rollout(steps):
         w = twindow
@@ -198,6 +200,7 @@ def main():
         **{f"{k}_step_ms": v for k, v in ms.items()},
         "train_step_ratio_torch_over_dispgns": ms["torch_train"] / ms["dispgns_train"],
         "rollout_step_ratio_torch_over_dispgns": ms["torch_rollout"] / ms["dispgns_rollout"],
+        "dispgns_matmul_dtype": args.matmul_dtype,
         "rounds": args.rounds,
     }
     print(json.dumps(report, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
