@@ -18,7 +18,8 @@ shows whether :func:`dispgns.tune_host_allocator` is in effect (near 0) or
 not (~125,000 for the paper network). ``edge_mlp_fraction_of_matmul`` compares
 a stack of per-edge MLPs (forward + backward) with an edge-sized matmul timed
 in alternation with it; ``edge_mlp_fraction_of_large_matmul`` with the
-2048^2 matmul.
+2048^2 matmul. Matmuls and MLP stacks are compiled with
+:func:`dispgns.network_compiler_options` of their dtype, as the network is.
 """
 
 from __future__ import annotations
@@ -87,10 +88,17 @@ def trajectories(n_particles: int, frames: int, seeds=(0, 1)):
     return out
 
 
+def network_options(dtype) -> dict:
+    """The XLA options the network's jits use for this matmul dtype (so floors and network share kernels)."""
+    name = "float32" if jnp.dtype(dtype) == jnp.float32 else "bfloat16"
+    return dispgns.network_compiler_options(ModelConfig(matmul_dtype=name)) if jax.default_backend() == "cpu" else {}
+
+
 def matmul_rate(m: int, k: int, n: int, dtype=jnp.float32) -> float:
     a = jax.random.normal(jax.random.key(0), (m, k)).astype(dtype)
     b = jax.random.normal(jax.random.key(1), (k, n)).astype(dtype)
-    f = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32))
+    f = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32)).lower(a, b).compile(
+        compiler_options=network_options(dtype))
     wall, _ = timed(lambda: f(a, b), 20)
     return 2.0 * m * k * n / wall / 1e9
 
@@ -140,10 +148,12 @@ def edge_mlp_rate(edges: int, dtype: str, repeats: int = 15) -> tuple[float, flo
             x = x + mlp.apply(p, x)
         return jnp.sum(x * x)
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    options = network_options(jnp.float32 if low is None else low)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1))).lower(params, x).compile(compiler_options=options)
     a = x.astype(jnp.float32 if low is None else low)
     b = jax.random.normal(jax.random.key(2), (128, 128)).astype(a.dtype)
-    product = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32))
+    product = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32)).lower(a, b).compile(
+        compiler_options=options)
     jax.block_until_ready(grad(params, x))
     jax.block_until_ready(product(a, b))
     mlp_times, matmul_times = [], []

@@ -33,7 +33,6 @@ import ctypes
 import functools
 import inspect
 import os
-import re
 import sys
 import warnings
 
@@ -162,42 +161,38 @@ def _outside_transformations() -> bool:
         return False
 
 
-_UNKNOWN_OPTION = re.compile(r"No such compile option: '([^']+)'")
-
-
 @functools.lru_cache(maxsize=None)
 def _known_options(items: tuple[tuple[str, object], ...]) -> tuple[tuple[str, object], ...]:
-    """``items`` without the options this jaxlib does not know (a warning names them).
+    """``items`` without the options this jaxlib refuses (a warning names each one).
 
-    XLA's option names change between releases: an option that is gone must
-    not stop a computation (values it rejects still raise, at compile time).
+    XLA's option names and values change between releases: an option must
+    never stop a computation. Each is tried alone on a trivial function.
     """
     import jax
 
-    options = dict(items)
-    while options:
+    kept = []
+    for name, value in items:
         try:
-            jax.jit(lambda x: x + 1, compiler_options=options).lower(1.0).compile()
-            break
-        except Exception as error:  # XLA raises its own runtime error type
-            unknown = _UNKNOWN_OPTION.search(str(error))
-            if unknown is None or unknown.group(1) not in options:
-                break
-            warnings.warn(f"dispgns: this jaxlib ({jax.__version__}) has no XLA option {unknown.group(1)!r}; "
-                          "compiling without it (same results, perhaps slower)", RuntimeWarning, stacklevel=3)
-            del options[unknown.group(1)]
-    return tuple(options.items())
+            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(1.0).compile()
+        except Exception as error:  # XLA raises its own runtime error types
+            warnings.warn(f"dispgns: this jaxlib ({jax.__version__}) refuses the XLA option {name}={value!r} "
+                          f"({error}); compiling without it (same results, perhaps slower)", RuntimeWarning,
+                          stacklevel=4)
+            continue
+        kept.append((name, value))
+    return tuple(kept)
 
 
 class CpuJit:
     """``jax.jit(fun, **jit_kwargs)`` that, on the CPU, compiles with per-call XLA options.
 
     ``options(*args, **kwargs)`` returns the compiler options for a call
-    (e.g. from its static model config). JAX accepts compiler options only on
-    a jit called outside every transformation; called inside one (the
-    caller's ``jit``, ``vmap``, ``grad``), this is an ordinary nested jit and
-    gets the options of the outermost computation. Both compute the same
-    function. Options unknown to the installed jaxlib are dropped with a
+    (e.g. from its static model config). They are used only for calls outside
+    every transformation: JAX refuses compiler options on a jit nested in the
+    caller's ``jit`` or differentiated by ``grad``, so inside any
+    transformation (``jit``, ``vmap``, ``grad``, ``scan``) this is an ordinary
+    nested jit and gets the options of the outermost computation. Both compute
+    the same function. Options the installed jaxlib refuses are dropped with a
     warning. ``lower`` works as ``jax.jit(...).lower``.
     """
 
@@ -250,9 +245,14 @@ def network_jit(fun=None, *, config_arg: str = "model_config", **jit_kwargs):
     if fun is None:
         return functools.partial(network_jit, config_arg=config_arg, **jit_kwargs)
     signature = inspect.signature(fun)
+    if config_arg not in signature.parameters:
+        raise ValueError(f"network_jit: {fun.__qualname__} has no parameter {config_arg!r} "
+                         f"(parameters: {list(signature.parameters)})")
 
     def options(*args, **kwargs):
-        config = signature.bind_partial(*args, **kwargs).arguments.get(config_arg)
+        bound = signature.bind(*args, **kwargs)  # a TypeError for a call that lacks arguments, as Python's own
+        bound.apply_defaults()
+        config = bound.arguments[config_arg]
         return network_compiler_options(getattr(config, "model_config", config))
 
     return CpuJit(fun, options, **jit_kwargs)
