@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 __version__ = "0.1.0"
 
 # First, before anything starts JAX's CPU backend: see dispgns.runtime.
-from dispgns.runtime import network_compiler_options, physics_compiler_options, tune_at_import as _tune_at_import, tune_host_allocator
+from dispgns.runtime import (network_compiler_options, physics_compiler_options, tune_at_import as _tune_at_import,
+                             tune_host_allocator)
 
 _tune_at_import()
 

@@ -231,7 +231,7 @@ def cpu_jit(fun=None, *, options, **jit_kwargs):
 
 
 def physics_jit(fun, **jit_kwargs):
-    """``jax.jit(fun, **jit_kwargs)``, compiled with :func:`physics_compiler_options` on the CPU (see :class:`CpuJit`)."""
+    """``jax.jit(fun, **jit_kwargs)`` with :func:`physics_compiler_options` on the CPU (see :class:`CpuJit`)."""
     return CpuJit(fun, lambda *args, **kwargs: physics_compiler_options(), **jit_kwargs)
 
 
