@@ -149,6 +149,69 @@ def test_layer_norm_matches_flax():
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
+def _reference_network(net, nodes, edges, senders, receivers, n_real_edges, config):
+    """The spec's network written out plainly: concatenated message inputs, flax's LayerNorm, real edges only."""
+    import flax.linen as nn
+
+    def mlp(p, x, layer_norm=True):
+        names = sorted((k for k in p if k.startswith("Dense_")), key=lambda k: int(k.split("_")[1]))
+        for k, name in enumerate(names):
+            x = x @ p[name]["kernel"] + p[name]["bias"]
+            if k < len(names) - 1:
+                x = jax.nn.relu(x)
+        if layer_norm:
+            x = nn.LayerNorm(epsilon=config.layer_norm_epsilon).apply({"params": p["LayerNorm_0"]}, x)
+        return x
+
+    s, r = senders[:n_real_edges], receivers[:n_real_edges]
+    x, e = mlp(net["node_encoder"], nodes), mlp(net["edge_encoder"], edges[:n_real_edges])
+    for k in range(config.message_passing_steps):
+        block = net[f"block_{k}"]
+        m = mlp(block["message"], jnp.concatenate([x[r], x[s], e], axis=-1))
+        summed = jax.ops.segment_sum(m, r, num_segments=x.shape[0])
+        x = x + mlp(block["node_2"], mlp(block["node"], jnp.concatenate([summed, x], axis=-1)))
+        e = e + mlp(block["edge"], m)
+    return mlp(net["decoder"], x, layer_norm=False)
+
+
+@pytest.mark.parametrize("hidden_layers", [0, 1, 2])
+def test_network_matches_a_plain_reference_implementation(hidden_layers):
+    """The split first layer and the LayerNorm centring folded into kernels compute the spec's function."""
+    from dispgns.model import apply_network
+
+    config = ModelConfig(latent_size=16, hidden_size=24, hidden_layers=hidden_layers, message_passing_steps=3)
+    net = init_params(jax.random.key(1), config)["network"]
+    # Non-trivial biases and LayerNorm parameters, so that folding them is tested too.
+    leaves, treedef = jax.tree_util.tree_flatten(net)
+    keys = jax.random.split(jax.random.key(2), len(leaves))
+    net = jax.tree_util.tree_unflatten(treedef, [v + 0.3 * jax.random.normal(k, v.shape) for v, k in zip(leaves, keys)])
+    n, real, slots = 12, 40, 48
+    key = jax.random.split(jax.random.key(3), 4)
+    nodes = jax.random.normal(key[0], (n, config.node_feature_size))
+    edges = jax.random.normal(key[1], (slots, config.edge_feature_size))
+    receivers = jnp.sort(jax.random.randint(key[2], (real,), 0, n))
+    senders = jax.random.randint(key[3], (real,), 0, n)
+    pad = jnp.full((slots - real,), n, jnp.int32)
+    senders, receivers = jnp.concatenate([senders, pad]), jnp.concatenate([receivers, pad])
+    weights = jax.random.normal(jax.random.key(4), (n, config.dim))
+
+    def ours(net):
+        return jnp.sum(apply_network(net, nodes, edges, senders, receivers, model_config=config) * weights)
+
+    def reference(net):
+        return jnp.sum(_reference_network(net, nodes, edges, senders, receivers, real, config) * weights)
+
+    out = apply_network(net, nodes, edges, senders, receivers, model_config=config)
+    want = _reference_network(net, nodes, edges, senders, receivers, real, config)
+    assert float(jnp.max(jnp.abs(want))) > 1e-2
+    np.testing.assert_allclose(np.asarray(out), np.asarray(want), rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(want))))
+    got_grad, want_grad = jax.grad(ours)(net), jax.grad(reference)(net)
+    for (path, g), w in zip(jax.tree_util.tree_leaves_with_path(got_grad), jax.tree_util.tree_leaves(want_grad)):
+        scale = float(jnp.max(jnp.abs(w))) + 1e-12
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-3, atol=1e-4 * scale,
+                                   err_msg=jax.tree_util.keystr(path))
+
+
 def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
     from dispgns.graph import GraphCapacity
     from dispgns.simulator import (build_graph, merge_graphs, merged_edge_count, network_output, network_output_batch,

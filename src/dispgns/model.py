@@ -17,7 +17,12 @@ With the paper's defaults (``L = H = 128``, 2 hidden layers, 10 blocks, ``C =
 
 The first layer of each message MLP acts on ``[x_i, x_j, e_ij]``; its kernel
 is split by rows so the node parts are multiplied once per node and then
-gathered per edge (same parameters, same function, far fewer FLOPs).
+gathered per edge (same parameters, same function, far fewer FLOPs). Each
+LayerNorm's centring is folded into the layer before it: that layer runs with
+the output-mean of every kernel row and of its bias taken off, so its output
+is already centred (same parameters, same function, one reduction and one
+pass fewer per LayerNorm). Both are checked against a plain implementation of
+the spec in the tests.
 
 The public surface is :class:`ModelConfig`, :func:`init_params` and
 :func:`apply_network`; ``params`` is a pytree ``{"network": ...,
@@ -195,15 +200,25 @@ class Linear(nn.Module):
         return self.dot(x, self.kernel) + self.bias
 
 
+def _row_mean(x):
+    """Mean over the last axis as a matrix-vector product, shape ``(..., 1)``.
+
+    XLA:CPU turns a row reduction into its own reduce-window pass per call;
+    as a dot it runs 1.6x faster standalone and one LayerNorm pass shorter in
+    the network. ``HIGHEST`` keeps it exact float32 on GPUs (TF32 otherwise).
+    """
+    ones = jnp.full((x.shape[-1], 1), 1.0 / x.shape[-1], x.dtype)
+    return jnp.matmul(x, ones, precision=lax.Precision.HIGHEST)
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
 def _layer_norm(x, scale, bias, epsilon):
     return _layer_norm_fwd(x, scale, bias, epsilon)[0]
 
 
 def _layer_norm_fwd(x, scale, bias, epsilon):
-    mean = jnp.mean(x, axis=-1, keepdims=True)
-    centred = x - mean
-    inv = lax.rsqrt(jnp.mean(centred * centred, axis=-1, keepdims=True) + epsilon)
+    centred = x - _row_mean(x)
+    inv = lax.rsqrt(_row_mean(centred * centred) + epsilon)
     normed = centred * inv
     return normed * scale + bias, (normed, inv, scale)
 
@@ -213,11 +228,37 @@ def _layer_norm_bwd(epsilon, residuals, dy):
     dbias = jnp.sum(dy, axis=tuple(range(dy.ndim - 1)))
     dscale = jnp.sum(dy * normed, axis=tuple(range(dy.ndim - 1)))
     g = dy * scale
-    dx = inv * (g - jnp.mean(g, axis=-1, keepdims=True) - normed * jnp.mean(g * normed, axis=-1, keepdims=True))
+    dx = inv * (g - _row_mean(g) - normed * _row_mean(g * normed))
     return dx, dscale, dbias
 
 
 _layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _layer_norm_of_centred(x, scale, bias, epsilon):
+    """LayerNorm of an ``x`` whose rows already have zero mean (no centring, its backward neither)."""
+    return _layer_norm_of_centred_fwd(x, scale, bias, epsilon)[0]
+
+
+def _layer_norm_of_centred_fwd(x, scale, bias, epsilon):
+    inv = lax.rsqrt(_row_mean(x * x) + epsilon)
+    normed = x * inv
+    return normed * scale + bias, (normed, inv, scale)
+
+
+def _layer_norm_of_centred_bwd(epsilon, residuals, dy):
+    normed, inv, scale = residuals
+    dbias = jnp.sum(dy, axis=tuple(range(dy.ndim - 1)))
+    dscale = jnp.sum(dy * normed, axis=tuple(range(dy.ndim - 1)))
+    g = dy * scale
+    # The centring lives in the layer's kernel (see MLP), whose autodiff
+    # projects this gradient onto zero-mean rows: no mean(g) term here.
+    dx = inv * (g - normed * _row_mean(g * normed))
+    return dx, dscale, dbias
+
+
+_layer_norm_of_centred.defvjp(_layer_norm_of_centred_fwd, _layer_norm_of_centred_bwd)
 
 
 class LayerNorm(nn.Module):
@@ -231,11 +272,13 @@ class LayerNorm(nn.Module):
     epsilon: float = 1e-5
 
     @nn.compact
-    def __call__(self, x):
+    def __call__(self, x, *, centred: bool = False):
+        """``x (..., F)``; ``centred=True`` promises rows of zero mean (then not subtracted again)."""
         features = x.shape[-1]
         scale = self.param("scale", nn.initializers.ones_init(), (features,))
         bias = self.param("bias", nn.initializers.zeros_init(), (features,))
-        return _layer_norm(x, scale.astype(x.dtype), bias.astype(x.dtype), self.epsilon)
+        norm = _layer_norm_of_centred if centred else _layer_norm
+        return norm(x, scale.astype(x.dtype), bias.astype(x.dtype), self.epsilon)
 
 
 class MLP(nn.Module):
@@ -262,11 +305,21 @@ class MLP(nn.Module):
     def after_first(self, h):
         """The MLP applied to the output ``h`` of its first linear layer."""
         act = _ACTIVATIONS[self.activation]
-        for layer in self.layers[1:]:
+        if not self.layer_norm:
+            for layer in self.layers[1:]:
+                h = layer(act(h))
+            return h
+        if len(self.layers) == 1:
+            return self.norm(h)
+        for layer in self.layers[1:-1]:
             h = layer(act(h))
-        if self.layer_norm:
-            h = self.norm(h)
-        return h
+        # LayerNorm's centring folded into the last layer: with the mean over
+        # outputs taken off each kernel row and off the bias, x W + b - mean
+        # is exactly x W' + b'. Saves a reduction and a pass per LayerNorm.
+        last = self.layers[-1]
+        kernel = last.kernel - jnp.mean(last.kernel, axis=-1, keepdims=True)
+        bias = last.bias - jnp.mean(last.bias)
+        return self.norm(last.dot(act(h), kernel) + bias, centred=True)
 
 
 class InteractionBlock(nn.Module):
