@@ -12,8 +12,10 @@ Prints a few human-readable lines and ends with one JSON line. Timings are
 wall-clock medians after compilation; CPU time of the process is reported
 too, because on a shared machine the wall time also measures the others.
 ``*_matmul_floor_ms`` is the time the step's dense-layer FLOPs would take at
-the rate of an edge-sized matmul (4800 x 128 x 128) measured in the same run:
-a lower bound for the step on this machine. ``page_faults_per_train_step``
+the rate of a chain of 20 dependent edge-sized matmuls (the rollout's edge
+slots x L x L for the network's latent size L, one jit) timed in alternation with the rollout chunk: a
+lower bound for the step at the machine's speed of that minute
+(``rollout_over_floor`` is the ratio). ``page_faults_per_train_step``
 shows whether :func:`dispgns.tune_host_allocator` is in effect (near 0) or
 not (~125,000 for the paper network). ``edge_mlp_fraction_of_matmul`` compares
 a stack of per-edge MLPs (forward + backward) with an edge-sized matmul timed
@@ -101,6 +103,24 @@ def matmul_rate(m: int, k: int, n: int, dtype=jnp.float32) -> float:
         compiler_options=network_options(dtype))
     wall, _ = timed(lambda: f(a, b), 20)
     return 2.0 * m * k * n / wall / 1e9
+
+
+def matmul_chain(rows: int, width: int = 128, dtype=jnp.float32, length: int = 20):
+    """A jitted chain of ``length`` dependent ``rows x width x width`` products and its FLOPs.
+
+    In one executable, as the network's layers are: no dispatch between the
+    products, so its rate is what the network's dots can reach at best.
+    """
+    x = jax.random.normal(jax.random.key(0), (rows, width)).astype(dtype)
+    w = (jax.random.normal(jax.random.key(1), (length, width, width)) / np.sqrt(width)).astype(dtype)
+
+    def chain(x, w):
+        for i in range(length):
+            x = jnp.dot(x, w[i], preferred_element_type=jnp.float32).astype(dtype)
+        return x
+
+    compiled = jax.jit(chain).lower(x, w).compile(compiler_options=network_options(dtype))
+    return (lambda: compiled(x, w)), 2.0 * length * rows * width * width
 
 
 def network_flops(config: ModelConfig, nodes: int, edges: int) -> float:
@@ -207,11 +227,27 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
     # Called directly (not inside another jit) so that it compiles with dispgns.network_compiler_options.
     chunk = lambda p, w: _scan_steps_jit(p, w, radius, mask, length=steps, capacity=capacity,
                                          model_config=model_config)[1]
-    # A chunk is one second or so and the machine drifts: the median of 7.
-    roll_wall, roll_cpu = timed(lambda: chunk(params, window), 7)
-    rollout_step = roll_wall / steps
     n_real = int(radius.shape[0])
     flops_rollout = network_flops(model_config, n_real, capacity.edges + n_real)
+    # The machine drifts within a minute: the rollout chunk (about a second)
+    # and the matmul chain that gives its floor are timed in alternation.
+    chain, chain_flops = matmul_chain(capacity.edges + n_real, model_config.latent_size,
+                                      jnp.float32 if dtype == "float32" else jnp.bfloat16)
+    jax.block_until_ready(chunk(params, window))
+    jax.block_until_ready(chain())
+    roll_walls, roll_cpus, chain_walls = [], [], []
+    for _ in range(7):
+        w, c = time.perf_counter(), time.process_time()
+        jax.block_until_ready(chunk(params, window))
+        roll_cpus.append(time.process_time() - c)
+        roll_walls.append(time.perf_counter() - w)
+        w = time.perf_counter()
+        for _ in range(5):
+            jax.block_until_ready(chain())
+        chain_walls.append((time.perf_counter() - w) / 5)
+    roll_wall, roll_cpu = float(np.median(roll_walls)), float(np.median(roll_cpus))
+    rollout_step = roll_wall / steps
+    chain_rate = chain_flops / float(np.median(chain_walls))
 
     full = None
     if args.full:
@@ -221,10 +257,9 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
         jax.block_until_ready(dispgns.rollout(params, x0, radius, 494, model_config=model_config))
         full = time.perf_counter() - t
 
-    # The time the dense layers alone would take at the rate of an edge-sized
-    # matmul measured in this run: no step can be faster on this machine.
-    matmul_rate_now = report["matmul_4800x128x128_gflops_per_s" if dtype == "float32"
-                            else "matmul_4800x128x128_bf16_gflops_per_s"] * 1e9
+    # The time the dense layers alone would take at the rate of the matmul
+    # chain timed next to the rollout: no step can be faster then.
+    matmul_rate_now = chain_rate
     faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(3):
         jax.block_until_ready(compiled(state, batch, key))
@@ -247,6 +282,8 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
         f"rollout_gflops_per_s{tag}": flops_rollout / rollout_step / 1e9,
         f"train_step_matmul_floor_ms{tag}": 1e3 * flops_train / matmul_rate_now,
         f"rollout_step_matmul_floor_ms{tag}": 1e3 * flops_rollout / matmul_rate_now,
+        f"rollout_over_floor{tag}": rollout_step / (flops_rollout / matmul_rate_now),
+        f"matmul_chain_gflops_per_s{tag}": chain_rate / 1e9,
         f"page_faults_per_train_step{tag}": faults_per_step,
         f"edge_mlp_gflops_per_s{tag}": mlp_rate,
         f"edge_matmul_gflops_per_s{tag}": edge_matmul_rate,
@@ -261,7 +298,9 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
         })
     print(f"[{dtype}] train step {1e3 * train_wall:.1f} ms (cpu {1e3 * train_cpu:.0f} ms), "
           f"{flops_train / 1e9:.1f} GFLOP -> {flops_train / train_wall / 1e9:.0f} GFLOP/s; rollout "
-          f"{1e3 * rollout_step:.1f} ms/step; full 494-step rollout {full if full is None else round(full, 2)} s",
+          f"{1e3 * rollout_step:.1f} ms/step ({rollout_step / (flops_rollout / matmul_rate_now):.2f}x the matmul "
+          f"floor at {matmul_rate_now / 1e9:.0f} GFLOP/s); full 494-step rollout "
+          f"{full if full is None else round(full, 2)} s",
           flush=True)
 
 
