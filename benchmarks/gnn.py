@@ -13,9 +13,9 @@ wall-clock medians after compilation; CPU time of the process is reported
 too, because on a shared machine the wall time also measures the others.
 ``*_matmul_floor_ms`` is the time the step's dense-layer FLOPs would take at
 the rate of a chain of 20 dependent edge-sized matmuls (the rollout's edge
-slots x L x L for the network's latent size L, one jit) timed in alternation with the rollout chunk: a
-lower bound for the step at the machine's speed of that minute
-(``rollout_over_floor`` is the ratio). ``page_faults_per_train_step``
+slots x L x L, L the latent size; one jit) timed in alternation with the
+rollout chunk: a lower bound for the step at the machine's speed of that
+minute (``rollout_over_floor`` is the ratio). ``page_faults_per_train_step``
 shows whether :func:`dispgns.tune_host_allocator` is in effect (near 0) or
 not (~125,000 for the paper network). ``edge_mlp_fraction_of_matmul`` compares
 a stack of per-edge MLPs (forward + backward) with an edge-sized matmul timed
@@ -237,14 +237,14 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
     jax.block_until_ready(chain())
     roll_walls, roll_cpus, chain_walls = [], [], []
     for _ in range(7):
-        w, c = time.perf_counter(), time.process_time()
+        wall_start, cpu_start = time.perf_counter(), time.process_time()
         jax.block_until_ready(chunk(params, window))
-        roll_cpus.append(time.process_time() - c)
-        roll_walls.append(time.perf_counter() - w)
-        w = time.perf_counter()
+        roll_cpus.append(time.process_time() - cpu_start)
+        roll_walls.append(time.perf_counter() - wall_start)
+        wall_start = time.perf_counter()
         for _ in range(5):
             jax.block_until_ready(chain())
-        chain_walls.append((time.perf_counter() - w) / 5)
+        chain_walls.append((time.perf_counter() - wall_start) / 5)
     roll_wall, roll_cpu = float(np.median(roll_walls)), float(np.median(roll_cpus))
     rollout_step = roll_wall / steps
     chain_rate = chain_flops / float(np.median(chain_walls))
