@@ -211,25 +211,31 @@ def _row_mean(x):
     return jnp.matmul(x, ones, precision=lax.Precision.HIGHEST)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
-def _layer_norm(x, scale, bias, epsilon):
-    return _layer_norm_fwd(x, scale, bias, epsilon)[0]
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
+def _layer_norm(x, scale, bias, epsilon, centred):
+    """LayerNorm over the last axis; ``centred=True``: the rows of ``x`` already have zero mean."""
+    return _layer_norm_fwd(x, scale, bias, epsilon, centred)[0]
 
 
-def _layer_norm_fwd(x, scale, bias, epsilon):
-    centred = x - _row_mean(x)
-    inv = lax.rsqrt(_row_mean(centred * centred) + epsilon)
-    normed = centred * inv
+def _layer_norm_fwd(x, scale, bias, epsilon, centred):
+    if not centred:
+        x = x - _row_mean(x)
+    inv = lax.rsqrt(_row_mean(x * x) + epsilon)
+    normed = x * inv
     return normed * scale + bias, (normed, inv, scale)
 
 
-def _layer_norm_bwd(epsilon, residuals, dy):
+def _layer_norm_bwd(epsilon, centred, residuals, dy):
     normed, inv, scale = residuals
     dbias = jnp.sum(dy, axis=tuple(range(dy.ndim - 1)))
     dscale = jnp.sum(dy * normed, axis=tuple(range(dy.ndim - 1)))
     g = dy * scale
-    dx = inv * (g - _row_mean(g) - normed * _row_mean(g * normed))
-    return dx, dscale, dbias
+    dx = g - normed * _row_mean(g * normed)
+    if not centred:
+        dx = dx - _row_mean(g)
+    # centred: the centring lives in the layer's kernel (see MLP), whose
+    # autodiff projects this gradient onto zero-mean rows.
+    return inv * dx, dscale, dbias
 
 
 _layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)
@@ -255,32 +261,6 @@ def _centre_last_bwd(_, g):
 _centre_last.defvjp(lambda v: (_centre_last(v), None), _centre_last_bwd)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
-def _layer_norm_of_centred(x, scale, bias, epsilon):
-    """LayerNorm of an ``x`` whose rows already have zero mean (no centring, its backward neither)."""
-    return _layer_norm_of_centred_fwd(x, scale, bias, epsilon)[0]
-
-
-def _layer_norm_of_centred_fwd(x, scale, bias, epsilon):
-    inv = lax.rsqrt(_row_mean(x * x) + epsilon)
-    normed = x * inv
-    return normed * scale + bias, (normed, inv, scale)
-
-
-def _layer_norm_of_centred_bwd(epsilon, residuals, dy):
-    normed, inv, scale = residuals
-    dbias = jnp.sum(dy, axis=tuple(range(dy.ndim - 1)))
-    dscale = jnp.sum(dy * normed, axis=tuple(range(dy.ndim - 1)))
-    g = dy * scale
-    # The centring lives in the layer's kernel (see MLP), whose autodiff
-    # projects this gradient onto zero-mean rows: no mean(g) term here.
-    dx = inv * (g - normed * _row_mean(g * normed))
-    return dx, dscale, dbias
-
-
-_layer_norm_of_centred.defvjp(_layer_norm_of_centred_fwd, _layer_norm_of_centred_bwd)
-
-
 class LayerNorm(nn.Module):
     """LayerNorm over the last axis (parameters ``scale``, ``bias``) with a hand-written backward pass.
 
@@ -297,8 +277,7 @@ class LayerNorm(nn.Module):
         features = x.shape[-1]
         scale = self.param("scale", nn.initializers.ones_init(), (features,))
         bias = self.param("bias", nn.initializers.zeros_init(), (features,))
-        norm = _layer_norm_of_centred if centred else _layer_norm
-        return norm(x, scale.astype(x.dtype), bias.astype(x.dtype), self.epsilon)
+        return _layer_norm(x, scale.astype(x.dtype), bias.astype(x.dtype), self.epsilon, centred)
 
 
 class MLP(nn.Module):
