@@ -8,6 +8,12 @@ for a while so the packing is realistic.
     python benchmarks/gnn.py            # float32 and bfloat16-matmul variants
     python benchmarks/gnn.py --quick    # float32 only, no full 494-step rollout
 
+The rollouts run on trained weights (``benchmarks/data/paper_network``, see
+``benchmarks/paper_network.py``; ``--rollout-model none``: untrained ones),
+from the trajectory's late frames for the timed 50-step chunk and from its
+first 6 frames for the full 494-step rollout, whose graph sizes are reported
+(``rollout_494_pairs_max``/``_mean``, ordered pairs without self-loops).
+
 Prints a few human-readable lines and ends with one JSON line. Timings are
 wall-clock medians after compilation; CPU time of the process is reported
 too, because on a shared machine the wall time also measures the others.
@@ -27,11 +33,13 @@ in alternation with it; ``edge_mlp_fraction_of_large_matmul`` with the
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
 import resource
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -42,14 +50,44 @@ from dispgns.data.examples import BatchStream
 from dispgns.graph import capacity_for, host_count_pairs
 from dispgns.model import MLP, ModelConfig, count_parameters
 from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
-from dispgns.simulator import _scan_steps_jit
+from dispgns.simulator import _rollout_chunk
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
+from dispgns.training.checkpoint import load_model
 
 RADII_MM = (2.25, 3.25, 3.75, 4.75)
 # The authors' PyTorch code with its default hyper-parameters, measured on this 2-core machine:
 # a training step on 2 examples of ~220 particles, and one rollout step of one example.
 AUTHORS_TRAIN_STEP_MS = 330.0
 AUTHORS_ROLLOUT_STEP_MS = 49.0
+# The paper's network trained for a while (benchmarks/paper_network.py says how): its rollouts keep
+# the particles where real ones go, so the graph stays the data's size.
+PAPER_NETWORK = Path(__file__).resolve().parent / "data" / "paper_network"
+
+
+def paper_network(directory: Path | None):
+    """``(params, model_config)`` of a trained paper-size model, or ``(None, None)`` for untrained weights.
+
+    The rollouts are timed with trained weights because untrained ones move
+    the particles unphysically: in a long rollout they pack them far closer
+    than any data does, the graph grows and every step costs more.
+    """
+    if directory is None or str(directory).lower() == "none":
+        return None, None
+    if not (Path(directory) / "model.json").is_file():
+        if Path(directory) != PAPER_NETWORK:
+            raise SystemExit(f"--rollout-model {directory}: no model.json there; expected a model directory "
+                             "written by dispgns train (RUN/model) or 'none'")
+        print(f"no trained paper-size model in {directory}: rollouts use untrained weights", flush=True)
+        return None, None
+    params, config, _ = load_model(directory)
+    expected = ModelConfig()
+    shape = ("latent_size", "hidden_layers", "hidden_size", "message_passing_steps", "input_sequence_length",
+             "dim", "activation", "connectivity_radius")
+    wrong = {f: getattr(config, f) for f in shape if getattr(config, f) != getattr(expected, f)}
+    if wrong:
+        raise SystemExit(f"{directory}/model.json: not the paper's network ({wrong}; expected "
+                         f"{ {f: getattr(expected, f) for f in wrong} })")
+    return params, config
 
 
 def timed(fn, repeats: int):
@@ -224,16 +262,19 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
     capacity = capacity_for(traj.position[start - 100:], connectivity_radius=0.2, margin=0.05)
     params = state.params if rollout_params is None else rollout_params
     steps = args.rollout_steps
-    # Called directly (not inside another jit) so that it compiles with dispgns.network_compiler_options.
-    chunk = lambda p, w: _scan_steps_jit(p, w, radius, mask, length=steps, capacity=capacity,
-                                         model_config=model_config)[1]
+    # What dispgns.rollout runs between its overflow checks, called directly (not inside another
+    # jit) so that it compiles with dispgns.network_compiler_options.
+    chunk = lambda p, w: _rollout_chunk(p, w, radius, mask, jnp.int32(steps), length=steps, capacity=capacity,
+                                        model_config=model_config)
     n_real = int(radius.shape[0])
     flops_rollout = network_flops(model_config, n_real, capacity.edges + n_real)
     # The machine drifts within a minute: the rollout chunk (about a second)
     # and the matmul chain that gives its floor are timed in alternation.
     chain, chain_flops = matmul_chain(capacity.edges + n_real, model_config.latent_size,
                                       jnp.float32 if dtype == "float32" else jnp.bfloat16)
-    jax.block_until_ready(chunk(params, window))
+    _, _, taken, overflow = jax.block_until_ready(chunk(params, window))
+    if bool(overflow):
+        raise SystemExit(f"the timed rollout chunk outgrew its graph capacity ({capacity}) at step {int(taken)}")
     jax.block_until_ready(chain())
     roll_walls, roll_cpus, chain_walls = [], [], []
     for _ in range(7):
@@ -249,13 +290,16 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
     rollout_step = roll_wall / steps
     chain_rate = chain_flops / float(np.median(chain_walls))
 
-    full = None
+    full = full_pairs = None
     if args.full:
         x0 = jnp.asarray(traj.position[:6])
         dispgns.rollout(params, x0, radius, 494, model_config=model_config)  # compile
         t = time.perf_counter()
-        jax.block_until_ready(dispgns.rollout(params, x0, radius, 494, model_config=model_config))
+        predicted = jax.block_until_ready(dispgns.rollout(params, x0, radius, 494, model_config=model_config))
         full = time.perf_counter() - t
+        # The graph the rollout met: with weights that move particles unphysically it grows far
+        # beyond the data's, and so does the cost of a step.
+        full_pairs = host_count_pairs(predicted, connectivity_radius=model_config.connectivity_radius)
 
     # The time the dense layers alone would take at the rate of the matmul
     # chain timed next to the rollout: no step can be faster then.
@@ -275,6 +319,8 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
         f"rollout_step_ms{tag}": 1e3 * rollout_step,
         f"rollout_step_cpu_ms{tag}": 1e3 * roll_cpu / steps,
         f"rollout_494_steps_s{tag}": full,
+        f"rollout_494_pairs_max{tag}": None if full_pairs is None else int(full_pairs.max()),
+        f"rollout_494_pairs_mean{tag}": None if full_pairs is None else float(full_pairs.mean()),
         f"train_gflop{tag}": flops_train / 1e9,
         f"train_gflop_xla{tag}": None if flops_xla is None else flops_xla / 1e9,
         f"train_gflops_per_s{tag}": flops_train / train_wall / 1e9,
@@ -309,6 +355,9 @@ def main():
     parser.add_argument("--quick", action="store_true", help="float32 only, no full 494-step rollout")
     parser.add_argument("--repeats", type=int, default=20, help="timed training steps (median)")
     parser.add_argument("--rollout-steps", type=int, default=50, help="steps per timed rollout chunk")
+    parser.add_argument("--rollout-model", type=Path, default=PAPER_NETWORK,
+                        help="a trained paper-size model directory whose weights drive the rollouts "
+                             "(default: benchmarks/data/paper_network; 'none': untrained weights)")
     args = parser.parse_args()
     args.full = not args.quick
 
@@ -321,8 +370,11 @@ def main():
     print(f"matmul 2048^2 {report['matmul_gflops_per_s']:.0f} GFLOP/s, 4800x128x128 "
           f"{report['matmul_4800x128x128_gflops_per_s']:.0f} GFLOP/s (bf16 "
           f"{report['matmul_4800x128x128_bf16_gflops_per_s']:.0f})", flush=True)
+    trained_params, trained_config = paper_network(args.rollout_model)
+    report["rollout_weights"] = "untrained" if trained_params is None else str(args.rollout_model)
     for dtype in (("float32",) if args.quick else ("float32", "bfloat16")):
-        run(dtype, trajs, args, report)
+        config = None if trained_config is None else dataclasses.replace(trained_config, matmul_dtype=dtype)
+        run(dtype, trajs, args, report, model_config=config, rollout_params=trained_params)
     # The model that ships with dispgns (smaller than the paper's), for what users of the demo see.
     shipped_params, shipped, _ = dispgns.load_pretrained()
     run("float32", trajs, args, report, model_config=shipped, tag="_shipped", rollout_params=shipped_params)

@@ -44,7 +44,7 @@ import dispgns
 from dispgns.data.examples import BatchStream
 from dispgns.graph import capacity_for
 from dispgns.model import ModelConfig
-from dispgns.simulator import _scan_steps_jit
+from dispgns.simulator import _rollout_chunk
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
 from gnn import machine_info, trajectories
 
@@ -183,8 +183,8 @@ def main():
     mask = jnp.ones(jradius.shape, bool)
     capacity = capacity_for(traj.position[start - 100:], connectivity_radius=RADIUS_GRAPH, margin=0.05)
     chunk_steps = 20
-    chunk = lambda: _scan_steps_jit(state.params, jwindow, jradius, mask, length=chunk_steps, capacity=capacity,
-                                    model_config=model_config)[1]
+    chunk = lambda: _rollout_chunk(state.params, jwindow, jradius, mask, jnp.int32(chunk_steps), length=chunk_steps,
+                                   capacity=capacity, model_config=model_config)
     twindow, tradius = torch.tensor(np.asarray(jwindow)), torch.tensor(np.asarray(jradius))
 
     def torch_rollout(steps):
@@ -195,7 +195,8 @@ def main():
 
     # Warm-up (compilation, allocator, thread pools).
     jax.block_until_ready(compiled(state, batch, key))
-    jax.block_until_ready(chunk())
+    if bool(jax.block_until_ready(chunk())[3]):
+        raise SystemExit(f"the timed rollout chunk outgrew its graph capacity ({capacity})")
     torch_train_step(net, opt, windows, radii, generator)
     torch_rollout(2)
 

@@ -149,7 +149,7 @@ def test_every_network_entry_point_compiles_with_the_options(jaxlib_uses_ynnpack
     from dispgns import ModelConfig
     from dispgns.data.examples import BatchStream
     from dispgns.graph import GraphCapacity
-    from dispgns.simulator import _scan_steps_batch, _scan_steps_jit, _step_jit
+    from dispgns.simulator import _rollout_chunk, _rollout_chunk_batch, _step_jit
     from dispgns.training import TrainConfig, create_train_state, train_step
     from dispgns.training.loop import _clean_loss
     from types import SimpleNamespace
@@ -167,10 +167,11 @@ def test_every_network_entry_point_compiles_with_the_options(jaxlib_uses_ynnpack
         "train_step": train_step.lower(state, batch, jax.random.key(1)),
         "_clean_loss": _clean_loss.lower(state.params, batch, config, train_config),
         "_step_jit": _step_jit.lower(state.params, window, radius, mask, capacity=capacity, model_config=config),
-        "_scan_steps_jit": _scan_steps_jit.lower(state.params, window, radius, mask, length=2, capacity=capacity,
-                                                 model_config=config),
-        "_scan_steps_batch": _scan_steps_batch.lower(state.params, window[None], radius[None], mask[None],
-                                                     length=2, capacity=capacity, model_config=config),
+        "_rollout_chunk": _rollout_chunk.lower(state.params, window, radius, mask, jnp.int32(2), length=2,
+                                               capacity=capacity, model_config=config),
+        "_rollout_chunk_batch": _rollout_chunk_batch.lower(state.params, window[None], radius[None], mask[None],
+                                                           jnp.int32(2), length=2, capacity=capacity,
+                                                           model_config=config),
     }
     for name, low in lowered.items():
         assert not _uses_ynnpack(low.compile().as_text()), name

@@ -64,6 +64,46 @@ def test_overflow_is_caught_and_recomputed(params, inputs):
         np.asarray(big[0]), rtol=0, atol=2e-6)
 
 
+def test_a_chunk_stops_at_its_first_overflowing_step(params, inputs):
+    from dispgns.simulator import _rollout_chunk
+    x, a = inputs
+    mask = jnp.ones((N,), bool)
+    expected = rollout(params, x, a, 4, model_config=TINY, capacity=CAP)
+    run = lambda limit, capacity: _rollout_chunk(params, x, a, mask, jnp.int32(limit), length=6, capacity=capacity,
+                                                 model_config=TINY)
+    window, positions, taken, overflow = run(4, CAP)
+    assert int(taken) == 4 and not bool(overflow)
+    np.testing.assert_allclose(np.asarray(positions[:4]), np.asarray(expected), rtol=0, atol=2e-6)
+    np.testing.assert_array_equal(np.asarray(positions[4:]), 0.0)
+    np.testing.assert_array_equal(np.asarray(window), np.asarray(jnp.concatenate([x[4:], positions[:4]])))
+    _, _, taken, overflow = run(4, GraphCapacity(16))
+    assert int(taken) == 1 and bool(overflow)
+
+
+def test_the_chunk_loop_redoes_only_the_overflowing_step():
+    """The host loop on a counting stand-in: frame t + 1 = frame t + 1, overflowing where t >= capacity."""
+    from dispgns.simulator import _roll_in_chunks
+    calls = []
+
+    def run_chunk(window, limit, length, capacity):
+        frames, t, overflow = [], float(window[-1, 0, 0]), False
+        while len(frames) < int(limit) and not overflow:
+            calls.append(t)
+            overflow = t >= capacity
+            t += 1
+            frames.append(np.full((1, 1), t))
+        taken = len(frames)
+        positions = jnp.asarray(np.concatenate([np.stack(frames), np.zeros((length - taken, 1, 1))]))
+        window = jnp.concatenate([window, positions[:taken]])[-window.shape[0]:]
+        return window, positions, taken, overflow
+
+    window = jnp.zeros((3, 1, 1))
+    out = _roll_in_chunks(run_chunk, window, 23, 10, 4, lambda capacity, frame: float(frame[0, 0]) + 7, axis=0)
+    np.testing.assert_array_equal(np.asarray(out)[:, 0, 0], np.arange(1, 24))
+    # Overflows at t = 4, 11 and 18 (capacity 4 -> 11 -> 18 -> 25): every step once, those three twice.
+    assert calls == sorted(list(range(23)) + [4, 11, 18])
+
+
 def test_traced_overflow_poisons_with_nan(params, inputs):
     x, a = inputs
     run = jax.jit(lambda p, x: rollout(p, x, a, 3, model_config=TINY, capacity=16))

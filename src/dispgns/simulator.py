@@ -341,7 +341,90 @@ def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCap
     return window, positions, flags
 
 
-_scan_steps_jit = network_jit(_scan_steps, static_argnames=("length", "capacity", "model_config"))
+def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
+    """Up to ``limit`` steps of ``step(window) -> (next, overflow ())``, stopping after an overflowing one.
+
+    ``window`` holds the last ``C`` frames along ``axis`` (0 for one
+    trajectory ``(C, N, D)``, 1 for a batch ``(B, C, N, D)``); ``limit`` is
+    traced (``<= length``, static), so one compilation serves every chunk.
+
+    Returns:
+      ``(window, positions (length, ...), steps taken (), overflow ())``; when
+      ``overflow`` is True the last step taken overflowed and it and the
+      window are wrong. Positions beyond the steps taken are zeros.
+    """
+    nxt, _ = jax.eval_shape(step, window)
+
+    def cond(carry):
+        taken, _, _, overflow = carry
+        return (taken < limit) & ~overflow
+
+    def body(carry):
+        taken, window, positions, _ = carry
+        nxt, overflow = step(window)
+        positions = lax.dynamic_update_index_in_dim(positions, nxt, taken, 0)
+        window = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)],
+                                 axis=axis)
+        return taken + 1, window, positions, overflow
+
+    start = (jnp.zeros((), jnp.int32), window, jnp.zeros((length,) + nxt.shape, nxt.dtype), jnp.zeros((), bool))
+    taken, window, positions, overflow = lax.while_loop(cond, body, start)
+    return window, positions, taken, overflow
+
+
+@functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
+def _rollout_chunk(params, window, radius, mask, limit, *, length: int, capacity: GraphCapacity,
+                   model_config: ModelConfig):
+    """Up to ``limit`` steps of one trajectory, stopping at an overflow (see :func:`_steps_until_overflow`)."""
+    step = lambda w: one_step(params, w, radius, mask, capacity, model_config)[1:]
+    return _steps_until_overflow(step, window, limit, length=length, axis=0)
+
+
+@functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
+def _rollout_chunk_batch(params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity,
+                         model_config: ModelConfig):
+    """:func:`_rollout_chunk` of ``B`` windows ``(B, C, N, D)``; positions ``(length, B, N, D)``."""
+
+    def step(w):
+        _, nxt, overflow = one_step_batch(params, w, radius, mask, capacity, model_config)
+        return nxt, jnp.any(overflow)
+
+    return _steps_until_overflow(step, windows, limit, length=length, axis=1)
+
+
+def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: GraphCapacity, grow, *,
+                    axis: int, progress=None):
+    """The host loop of the concrete rollouts: compiled chunks, capacity grown after an overflow.
+
+    ``run_chunk(window, limit, length, capacity)`` is a ``_rollout_chunk*``
+    call; ``grow(capacity, last frame)`` returns a larger capacity. A chunk
+    stops at its first overflowing step, so only that step is computed
+    again (with the larger graph). Returns positions ``(n_steps, ...)``.
+    """
+    c = window.shape[axis]
+    n_chunks = math.ceil(n_steps / max(1, chunk_size))
+    length = math.ceil(n_steps / n_chunks)
+    chunks, done = [], 0
+    while done < n_steps:
+        limit = min(length, n_steps - done)
+        new_window, positions, taken, overflow = run_chunk(window, jnp.int32(limit), length, capacity)
+        taken, overflow = int(taken), bool(overflow)
+        valid = taken - 1 if overflow else taken
+        if valid:
+            chunks.append(positions[:valid])
+            done += valid
+        if overflow:
+            # Steps before the overflowing one used complete graphs: keep them
+            # and go on from there with a graph that fits the frame.
+            if valid:
+                frames = jnp.concatenate([window, jnp.moveaxis(positions[:valid], 0, axis)], axis=axis)
+                window = lax.slice_in_dim(frames, frames.shape[axis] - c, None, axis=axis)
+            capacity = grow(capacity, jnp.take(window, c - 1, axis=axis))
+            continue
+        window = new_window
+        if progress is not None:
+            progress(done)
+    return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
 
 
 def rollout(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
@@ -349,10 +432,9 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
     """Autoregressive rollout of ``n_steps`` frames (``lax.scan``, graph rebuilt at every step).
 
     With concrete arrays the steps run in compiled chunks of about
-    ``chunk_size``; after each chunk the overflow flags are checked and, if
-    one is set, the capacity is grown and the steps from the first
-    overflowing one on are recomputed, so the result is exactly that of a
-    graph without any size limit. Under ``jit``/``vmap``/
+    ``chunk_size``; a chunk stops at a step whose graph overflowed, the
+    capacity is grown and that step is recomputed, so the result is exactly
+    that of a graph without any size limit. Under ``jit``/``vmap``/
     ``grad`` the whole rollout is one scan with the given ``capacity`` (when
     ``None``: sized from concrete initial positions with 50 % head-room, or
     all ``N (N - 1)`` pairs if they are traced too); every frame from the
@@ -368,9 +450,11 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
       model_config: static :class:`ModelConfig`.
       mask: optional ``(N,)`` bool, ``False`` for padding particles.
       capacity: optional graph capacity.
-      chunk_size: static, steps per compiled chunk in the concrete path (an overflow
-        discards at most the rest of one chunk). On the CPU the chunks are
-        compiled with :func:`dispgns.network_compiler_options`.
+      chunk_size: static, steps per compiled chunk in the concrete path
+        (the host checks for an overflow between chunks; a chunk stops at
+        its first overflowing step, so only that step is redone). On the
+        CPU the chunks are compiled with
+        :func:`dispgns.network_compiler_options`.
 
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
@@ -395,28 +479,10 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
     if capacity is None:
         capacity = graph_lib.capacity_for(window[-1], mask, connectivity_radius=model_config.connectivity_radius,
                                           bounds=model_config.bounds, margin=0.1)
-    n_chunks = math.ceil(n_steps / max(1, chunk_size))
-    length = math.ceil(n_steps / n_chunks)
-    chunks, done = [], 0
-    while done < n_steps:
-        new_window, positions, flags = _scan_steps_jit(params, window, radius, mask, length=length,
-                                                       capacity=capacity, model_config=model_config)
-        keep = min(length, n_steps - done)
-        flags = np.asarray(flags)
-        if flags[keep - 1]:
-            # Steps before the first overflow used complete graphs: keep them,
-            # resize from the frame that overflowed and carry on from there.
-            valid = int(np.argmax(flags))
-            if valid:
-                chunks.append(positions[:valid])
-                window = jnp.concatenate([window, positions[:valid]], axis=0)[-window.shape[0]:]
-                done += valid
-            capacity = _grown(capacity, window[-1], mask, model_config)
-            continue
-        chunks.append(positions[:keep])
-        window = new_window
-        done += keep
-    return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
+    run_chunk = lambda w, limit, length, capacity: _rollout_chunk(params, w, radius, mask, limit, length=length,
+                                                                  capacity=capacity, model_config=model_config)
+    grow = lambda capacity, position: _grown(capacity, position, mask, model_config)
+    return _roll_in_chunks(run_chunk, window, n_steps, chunk_size, capacity, grow, axis=0)
 
 
 def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -> GraphCapacity:
@@ -453,23 +519,6 @@ def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, 
     if edge_budget is not None:
         overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > edge_budget)
     return acc, next_position, overflow
-
-
-@functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
-def _scan_steps_batch(params, windows, radius, mask, *, length: int, capacity: GraphCapacity,
-                      model_config: ModelConfig):
-    """``length`` steps of ``B`` windows ``(B, C, N, D)``: (last windows, positions (length, B, N, D), flags (length, B))."""
-
-    def body(carry, _):
-        windows, overflow = carry
-        _, nxt, step_overflow = one_step_batch(params, windows, radius, mask, capacity, model_config)
-        overflow = overflow | step_overflow
-        windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
-        return (windows, overflow), (nxt, overflow)
-
-    overflow = jnp.zeros(windows.shape[:1], bool)
-    (windows, _), (positions, flags) = lax.scan(body, (windows, overflow), None, length=length)
-    return windows, positions, flags
 
 
 def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
@@ -520,29 +569,13 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
     capacity = _as_capacity(capacity)
     if capacity is None:
         capacity = _batch_capacity(None, windows[:, -1], mask, model_config, margin=0.1)
-    n_chunks = math.ceil(n_steps / max(1, chunk_size))
-    length = math.ceil(n_steps / n_chunks)
-    chunks, done = [], 0
-    while done < n_steps:
-        new_windows, positions, flags = _scan_steps_batch(params, windows, radius, mask, length=length,
-                                                          capacity=capacity, model_config=model_config)
-        keep = min(length, n_steps - done)
-        any_flag = np.asarray(flags).any(axis=1)
-        if any_flag[keep - 1]:
-            valid = int(np.argmax(any_flag))
-            if valid:
-                moved = jnp.moveaxis(positions[:valid], 0, 1)
-                chunks.append(moved)
-                windows = jnp.concatenate([windows, moved], axis=1)[:, -c:]
-                done += valid
-            capacity = _batch_capacity(capacity, windows[:, -1], mask, model_config, margin=0.2)
-            continue
-        chunks.append(jnp.moveaxis(positions[:keep], 0, 1))
-        windows = new_windows
-        done += keep
-        if progress is not None:
-            progress(done)
-    return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=1)
+    run_chunk = lambda w, limit, length, capacity: _rollout_chunk_batch(
+        params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config)
+    # The host loop grows from the first frame any trajectory overflowed at; refit from all of them.
+    grow = lambda capacity, position: _batch_capacity(capacity, position, mask, model_config, margin=0.2)
+    positions = _roll_in_chunks(run_chunk, windows, n_steps, chunk_size, capacity, grow, axis=1,
+                                progress=progress)
+    return jnp.moveaxis(positions, 0, 1)
 
 
 def _batch_capacity(capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *,
