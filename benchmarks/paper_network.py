@@ -3,7 +3,7 @@
 The benchmark times rollouts with trained weights: untrained ones move the
 particles unphysically, pack them far closer than any data does and so time
 steps on a graph the simulator never meets. The weights in
-``benchmarks/data/paper_network`` came from (about 35 minutes on the 2-core
+``benchmarks/data/paper_network`` came from (37 minutes on the 2-core
 development machine)::
 
     dispgns generate --preset paper --seed 0 --out /tmp/paper/data

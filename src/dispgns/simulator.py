@@ -571,7 +571,7 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
         capacity = _batch_capacity(None, windows[:, -1], mask, model_config, margin=0.1)
     run_chunk = lambda w, limit, length, capacity: _rollout_chunk_batch(
         params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config)
-    # The host loop grows from the first frame any trajectory overflowed at; refit from all of them.
+    # One trajectory's overflow stops them all; every graph is refitted at that frame.
     grow = lambda capacity, position: _batch_capacity(capacity, position, mask, model_config, margin=0.2)
     positions = _roll_in_chunks(run_chunk, windows, n_steps, chunk_size, capacity, grow, axis=1,
                                 progress=progress)
