@@ -1,8 +1,9 @@
 """Export a trained paper-size network for the rollout timings of ``benchmarks/gnn.py``.
 
 The benchmark times rollouts with trained weights: untrained ones move the
-particles unphysically, pack them far closer than any data does and so time
-steps on a graph the simulator never meets. The weights in
+particles unphysically (in a full rollout they all leave the box and the
+graph empties) and so would time steps on graphs the simulator never meets.
+The weights in
 ``benchmarks/data/paper_network`` came from (37 minutes on the 2-core
 development machine)::
 
