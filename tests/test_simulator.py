@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax import lax
 
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig, init_params
@@ -68,40 +69,75 @@ def test_a_chunk_stops_at_its_first_overflowing_step(params, inputs):
     from dispgns.simulator import _rollout_chunk
     x, a = inputs
     mask = jnp.ones((N,), bool)
-    expected = rollout(params, x, a, 4, model_config=TINY, capacity=CAP)
+    window, expected = x, []
+    for _ in range(4):
+        expected.append(predict_position(params, window, a, model_config=TINY, capacity=CAP))
+        window = jnp.concatenate([window[1:], expected[-1][None]])
     run = lambda limit, capacity: _rollout_chunk(params, x, a, mask, jnp.int32(limit), length=6, capacity=capacity,
                                                  model_config=TINY)
     window, positions, taken, overflow = run(4, CAP)
     assert int(taken) == 4 and not bool(overflow)
-    np.testing.assert_allclose(np.asarray(positions[:4]), np.asarray(expected), rtol=0, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(positions[:4]), np.asarray(jnp.stack(expected)), rtol=0, atol=2e-6)
     np.testing.assert_array_equal(np.asarray(positions[4:]), 0.0)
     np.testing.assert_array_equal(np.asarray(window), np.asarray(jnp.concatenate([x[4:], positions[:4]])))
     _, _, taken, overflow = run(4, GraphCapacity(16))
     assert int(taken) == 1 and bool(overflow)
 
 
-def test_the_chunk_loop_redoes_only_the_overflowing_step():
-    """The host loop on a counting stand-in: frame t + 1 = frame t + 1, overflowing where t >= capacity."""
+def _counting_step(window, capacity, axis):
+    """Stand-in step: the next frame is the last one + 1; it overflows where the last frame is >= capacity."""
+    last = jnp.take(window, window.shape[axis] - 1, axis=axis)
+    return last + 1.0, jnp.max(last) >= capacity
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_the_step_loop_stops_mid_chunk_at_an_overflow(axis):
+    from dispgns.simulator import _steps_until_overflow
+    window = jnp.moveaxis(jnp.broadcast_to(jnp.arange(3.0)[:, None, None, None], (3, 2, 1, 1)), 0, axis)
+    if axis == 0:
+        window = window[:, 0]
+    run = jax.jit(lambda w, limit, cap: _steps_until_overflow(lambda w: _counting_step(w, cap, axis), w, limit,
+                                                              length=8, axis=axis))
+    new_window, positions, taken, overflow = run(window, jnp.int32(8), 5.0)
+    # Frames 3, 4, 5 are fine; the step from frame 5 overflows (and is the last one taken).
+    assert int(taken) == 4 and bool(overflow)
+    np.testing.assert_array_equal(np.asarray(positions)[:4].reshape(4, -1)[:, 0], [3.0, 4.0, 5.0, 6.0])
+    np.testing.assert_array_equal(np.asarray(positions)[4:], 0.0)
+    # A limit above the static length is clamped instead of overwriting the last row.
+    _, positions, taken, overflow = run(window, jnp.int32(50), 100.0)
+    assert int(taken) == 8 and not bool(overflow)
+    np.testing.assert_array_equal(np.asarray(positions).reshape(8, -1)[:, 0], np.arange(3.0, 11.0))
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_the_chunk_loop_redoes_only_the_overflowing_step(axis):
+    """The host loop on a counting stand-in, for one trajectory (axis 0) and a batch of two (axis 1)."""
     from dispgns.simulator import _roll_in_chunks
-    calls = []
+    calls, done = [], []
 
     def run_chunk(window, limit, length, capacity):
-        frames, t, overflow = [], float(window[-1, 0, 0]), False
+        frames, overflow = [], False
         while len(frames) < int(limit) and not overflow:
-            calls.append(t)
-            overflow = t >= capacity
-            t += 1
-            frames.append(np.full((1, 1), t))
+            nxt, overflow = _counting_step(window, capacity, axis)
+            calls.append(float(jnp.max(nxt)) - 1)
+            frames.append(nxt)
+            window = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)],
+                                     axis=axis)
         taken = len(frames)
-        positions = jnp.asarray(np.concatenate([np.stack(frames), np.zeros((length - taken, 1, 1))]))
-        window = jnp.concatenate([window, positions[:taken]])[-window.shape[0]:]
-        return window, positions, taken, overflow
+        positions = jnp.concatenate([jnp.stack(frames), jnp.zeros((length - taken,) + frames[0].shape)])
+        return window, positions, taken, bool(overflow)
 
-    window = jnp.zeros((3, 1, 1))
-    out = _roll_in_chunks(run_chunk, window, 23, 10, 4, lambda capacity, frame: float(frame[0, 0]) + 7, axis=0)
-    np.testing.assert_array_equal(np.asarray(out)[:, 0, 0], np.arange(1, 24))
+    window = jnp.zeros((3, 1, 1)) if axis == 0 else jnp.zeros((2, 3, 1, 1))
+    grow = lambda capacity, frame: float(jnp.max(frame)) + 7
+    out = _roll_in_chunks(run_chunk, window, 23, 10, 4, grow, axis=axis, progress=done.append)
+    assert out.shape == (23,) + window.shape[:axis] + window.shape[axis + 1:]
+    flat = np.asarray(out).reshape(23, -1)
+    np.testing.assert_array_equal(flat, np.broadcast_to(np.arange(1.0, 24.0)[:, None], flat.shape))
     # Overflows at t = 4, 11 and 18 (capacity 4 -> 11 -> 18 -> 25): every step once, those three twice.
     assert calls == sorted(list(range(23)) + [4, 11, 18])
+    assert done == sorted(set(done)) and done[-1] == 23
+    with pytest.raises(RuntimeError, match="cannot grow"):
+        _roll_in_chunks(run_chunk, window, 23, 10, 4, lambda capacity, frame: capacity, axis=axis)
 
 
 def test_traced_overflow_poisons_with_nan(params, inputs):

@@ -346,14 +346,16 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
 
     ``window`` holds the last ``C`` frames along ``axis`` (0 for one
     trajectory ``(C, N, D)``, 1 for a batch ``(B, C, N, D)``); ``limit`` is
-    traced (``<= length``, static), so one compilation serves every chunk.
+    traced (at most the static ``length``), so one compilation serves every
+    chunk. ``step`` returns the next frame with the window's dtype.
 
     Returns:
       ``(window, positions (length, ...), steps taken (), overflow ())``; when
       ``overflow`` is True the last step taken overflowed and it and the
       window are wrong. Positions beyond the steps taken are zeros.
     """
-    nxt, _ = jax.eval_shape(step, window)
+    frame_shape = window.shape[:axis] + window.shape[axis + 1:]
+    limit = jnp.minimum(limit, length)
 
     def cond(carry):
         taken, _, _, overflow = carry
@@ -367,7 +369,7 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
                                  axis=axis)
         return taken + 1, window, positions, overflow
 
-    start = (jnp.zeros((), jnp.int32), window, jnp.zeros((length,) + nxt.shape, nxt.dtype), jnp.zeros((), bool))
+    start = (jnp.zeros((), jnp.int32), window, jnp.zeros((length,) + frame_shape, window.dtype), jnp.zeros((), bool))
     taken, window, positions, overflow = lax.while_loop(cond, body, start)
     return window, positions, taken, overflow
 
@@ -399,7 +401,8 @@ def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: 
     ``run_chunk(window, limit, length, capacity)`` is a ``_rollout_chunk*``
     call; ``grow(capacity, last frame)`` returns a larger capacity. A chunk
     stops at its first overflowing step, so only that step is computed
-    again (with the larger graph). Returns positions ``(n_steps, ...)``.
+    again (with the larger graph). ``progress(done)`` is called whenever
+    steps were kept. Returns positions ``(n_steps, ...)``.
     """
     c = window.shape[axis]
     n_chunks = math.ceil(n_steps / max(1, chunk_size))
@@ -413,23 +416,27 @@ def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: 
         if valid:
             chunks.append(positions[:valid])
             done += valid
-        if overflow:
-            # Steps before the overflowing one used complete graphs: keep them
-            # and go on from there with a graph that fits the frame.
-            if valid:
-                frames = jnp.concatenate([window, jnp.moveaxis(positions[:valid], 0, axis)], axis=axis)
-                window = lax.slice_in_dim(frames, frames.shape[axis] - c, None, axis=axis)
-            capacity = grow(capacity, jnp.take(window, c - 1, axis=axis))
+            if progress is not None:
+                progress(done)
+        if not overflow:
+            window = new_window
             continue
-        window = new_window
-        if progress is not None:
-            progress(done)
+        # Steps before the overflowing one used complete graphs: keep them and
+        # go on from there with a graph that fits the frame.
+        if valid:
+            frames = jnp.concatenate([window, jnp.moveaxis(positions[:valid], 0, axis)], axis=axis)
+            window = lax.slice_in_dim(frames, frames.shape[axis] - c, None, axis=axis)
+        grown = grow(capacity, jnp.take(window, c - 1, axis=axis))
+        if grown == capacity:
+            raise RuntimeError(f"the graph overflows {capacity}, which cannot grow (every pair already fits): "
+                               "the positions at that step are probably not finite")
+        capacity = grown
     return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
 
 
 def rollout(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
             capacity=None, chunk_size: int = 50):
-    """Autoregressive rollout of ``n_steps`` frames (``lax.scan``, graph rebuilt at every step).
+    """Autoregressive rollout of ``n_steps`` frames (compiled loops, graph rebuilt at every step).
 
     With concrete arrays the steps run in compiled chunks of about
     ``chunk_size``; a chunk stops at a step whose graph overflowed, the
@@ -543,7 +550,8 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
       capacity: optional graph capacity per trajectory (``None``: sized from
         the initial frames of every trajectory).
       chunk_size: steps per compiled chunk.
-      progress: optional ``progress(done_steps)`` callback after each chunk.
+      progress: optional ``progress(done_steps)`` callback whenever steps are done
+        (after each chunk, and before a capacity growth).
 
     Returns:
       ``(B, n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
