@@ -103,6 +103,8 @@ def test_the_step_loop_stops_mid_chunk_at_an_overflow(axis):
     assert int(taken) == 4 and bool(overflow)
     np.testing.assert_array_equal(np.asarray(positions)[:4].reshape(4, -1)[:, 0], [3.0, 4.0, 5.0, 6.0])
     np.testing.assert_array_equal(np.asarray(positions)[4:], 0.0)
+    # The window to go on from is the one before the overflowing step: frames 3, 4, 5.
+    np.testing.assert_array_equal(np.asarray(jnp.moveaxis(new_window, axis, 0)).reshape(3, -1)[:, 0], [3.0, 4.0, 5.0])
     # A limit above the static length is clamped instead of overwriting the last row.
     _, positions, taken, overflow = run(window, jnp.int32(50), 100.0)
     assert int(taken) == 8 and not bool(overflow)
@@ -121,8 +123,9 @@ def test_the_chunk_loop_redoes_only_the_overflowing_step(axis):
             nxt, overflow = _counting_step(window, capacity, axis)
             calls.append(float(jnp.max(nxt)) - 1)
             frames.append(nxt)
-            window = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)],
-                                     axis=axis)
+            if not overflow:  # as the compiled loop: the window before the overflowing step
+                window = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis),
+                                          jnp.expand_dims(nxt, axis)], axis=axis)
         taken = len(frames)
         positions = jnp.concatenate([jnp.stack(frames), jnp.zeros((length - taken,) + frames[0].shape)])
         return window, positions, taken, bool(overflow)

@@ -324,8 +324,7 @@ def predict_position(params, position_seq, radius, *, model_config: ModelConfig,
     return _predict(params, position_seq, radius, mask, capacity, model_config)[1]
 
 
-def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCapacity, model_config: ModelConfig,
-                overflow=None):
+def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCapacity, model_config: ModelConfig):
     """``length`` steps from ``window`` (C, N, D); returns (last window, positions (length, N, D), overflow)."""
 
     def body(carry, _):
@@ -335,9 +334,7 @@ def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCap
         window = jnp.concatenate([window[1:], nxt[None]], axis=0)
         return (window, overflow), (nxt, overflow)
 
-    if overflow is None:
-        overflow = jnp.zeros((), bool)
-    (window, overflow), (positions, flags) = lax.scan(body, (window, overflow), None, length=length)
+    (window, _), (positions, flags) = lax.scan(body, (window, jnp.zeros((), bool)), None, length=length)
     return window, positions, flags
 
 
@@ -351,8 +348,9 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
 
     Returns:
       ``(window, positions (length, ...), steps taken (), overflow ())``; when
-      ``overflow`` is True the last step taken overflowed and it and the
-      window are wrong. Positions beyond the steps taken are zeros.
+      ``overflow`` is True the last step taken overflowed: its position is
+      wrong and ``window`` is the one before it, to go on from. Positions
+      beyond the steps taken are zeros.
     """
     frame_shape = window.shape[:axis] + window.shape[axis + 1:]
     limit = jnp.minimum(limit, length)
@@ -365,9 +363,9 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
         taken, window, positions, _ = carry
         nxt, overflow = step(window)
         positions = lax.dynamic_update_index_in_dim(positions, nxt, taken, 0)
-        window = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)],
-                                 axis=axis)
-        return taken + 1, window, positions, overflow
+        shifted = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)],
+                                  axis=axis)
+        return taken + 1, jnp.where(overflow, window, shifted), positions, overflow
 
     start = (jnp.zeros((), jnp.int32), window, jnp.zeros((length,) + frame_shape, window.dtype), jnp.zeros((), bool))
     taken, window, positions, overflow = lax.while_loop(cond, body, start)
@@ -404,7 +402,6 @@ def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: 
     again (with the larger graph). ``progress(done)`` is called whenever
     steps were kept. Returns positions ``(n_steps, ...)``.
     """
-    c = window.shape[axis]
     n_chunks = math.ceil(n_steps / max(1, chunk_size))
     length = math.ceil(n_steps / n_chunks)
     chunks, done = [], 0
@@ -418,15 +415,12 @@ def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: 
             done += valid
             if progress is not None:
                 progress(done)
+        # After an overflow the window is the one before the overflowing step
+        # (whose graph missed edges): go on from it with a graph that fits.
+        window = new_window
         if not overflow:
-            window = new_window
             continue
-        # Steps before the overflowing one used complete graphs: keep them and
-        # go on from there with a graph that fits the frame.
-        if valid:
-            frames = jnp.concatenate([window, jnp.moveaxis(positions[:valid], 0, axis)], axis=axis)
-            window = lax.slice_in_dim(frames, frames.shape[axis] - c, None, axis=axis)
-        grown = grow(capacity, jnp.take(window, c - 1, axis=axis))
+        grown = grow(capacity, jnp.take(window, window.shape[axis] - 1, axis=axis))
         if grown == capacity:
             raise RuntimeError(f"the graph overflows {capacity}, which cannot grow (every pair already fits): "
                                "the positions at that step are probably not finite")
