@@ -23,7 +23,11 @@ too, because on a shared machine the wall time also measures the others.
 the rate of a chain of 20 dependent edge-sized matmuls (the rollout's edge
 slots x L x L, L the latent size; one jit) timed in alternation with the
 rollout chunk: a lower bound for the step at the machine's speed of that
-minute (``rollout_over_floor`` is the ratio). ``page_faults_per_train_step``
+minute (``rollout_over_floor`` is the ratio). ``*_at_fma_peak`` and
+``rollout_fraction_of_fma_peak*`` compare with the CPU's peak rate
+(``benchmarks/cpu_peak.py``): no software can beat that time, and the
+fraction needed for the 15 ms target is what the whole step, gathers and
+LayerNorms included, would have to reach. ``page_faults_per_train_step``
 shows whether :func:`dispgns.tune_host_allocator` is in effect (near 0) or
 not (~125,000 for the paper network). ``edge_mlp_fraction_of_matmul`` compares
 a stack of per-edge MLPs (forward + backward) with an edge-sized matmul timed
@@ -55,6 +59,8 @@ from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
 from dispgns.simulator import _rollout_chunk
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
 from dispgns.training.checkpoint import load_model
+
+from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 
 RADII_MM = (2.25, 3.25, 3.75, 4.75)
 # The authors' PyTorch code with its default hyper-parameters, measured on this 2-core machine:
@@ -233,8 +239,11 @@ def edge_mlp_rate(edges: int, dtype: str, repeats: int = 15) -> tuple[float, flo
 
 
 def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None = None, tag: str | None = None,
-        rollout_params=None):
+        rollout_params=None, peak: dict | None = None):
     """Time one configuration; ``rollout_params``: trained weights for the rollouts (default: the initial ones).
+
+    ``peak``: :func:`cpu_peak.fma_peak` of this machine (``None``: not
+    measured), for the times the steps' FLOPs would take at the CPU's peak.
 
     Untrained weights move particles unphysically, so a long rollout with them
     can pack far more edges than real data (capacity grows, steps get dearer).
@@ -339,6 +348,15 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
         f"edge_matmul_gflops_per_s{tag}": edge_matmul_rate,
         f"edge_mlp_fraction_of_matmul{tag}": mlp_rate / edge_matmul_rate,
     })
+    peak_rate = None if peak is None else peak["float32" if dtype == "float32" else "bfloat16"]
+    if peak_rate:
+        report.update({
+            f"train_step_ms_at_fma_peak{tag}": flops_train / peak_rate / 1e6,
+            f"rollout_step_ms_at_fma_peak{tag}": flops_rollout / peak_rate / 1e6,
+            f"rollout_fraction_of_fma_peak{tag}": flops_rollout / rollout_step / 1e9 / peak_rate,
+        })
+        if tag != "_shipped":  # the issue's 15 ms target is for the paper's network
+            report[f"rollout_fraction_of_fma_peak_needed_for_target{tag}"] = flops_rollout / 15e-3 / 1e9 / peak_rate
     if tag == "":
         report.update({
             "edges_per_example": [int(p) + n for p, n in zip(pairs, batch.mask.sum(axis=1))],
@@ -374,14 +392,22 @@ def main():
     print(f"matmul 2048^2 {report['matmul_gflops_per_s']:.0f} GFLOP/s, 4800x128x128 "
           f"{report['matmul_4800x128x128_gflops_per_s']:.0f} GFLOP/s (bf16 "
           f"{report['matmul_4800x128x128_bf16_gflops_per_s']:.0f})", flush=True)
+    # The CPU's own limit (no memory traffic, every FMA pipe busy): times below flops / peak are impossible.
+    peak = fma_peak() if jax.default_backend() == "cpu" else None
+    report["fma_peak_gflops_per_s"] = None if peak is None else peak["float32"]
+    report["fma_peak_bf16_gflops_per_s"] = None if peak is None else peak["bfloat16"]
+    if peak is not None:
+        print(f"CPU peak (benchmarks/cpu_peak.py): float32 FMA {peak['float32']:.0f} GFLOP/s"
+              + ("" if peak["bfloat16"] is None else f", bfloat16 dot {peak['bfloat16']:.0f} GFLOP/s"), flush=True)
     trained_params, trained_config = paper_network(args.rollout_model)
     report["rollout_weights"] = "untrained" if trained_params is None else str(args.rollout_model)
     for dtype in (("float32",) if args.quick else ("float32", "bfloat16")):
         config = None if trained_config is None else dataclasses.replace(trained_config, matmul_dtype=dtype)
-        run(dtype, trajs, args, report, model_config=config, rollout_params=trained_params)
+        run(dtype, trajs, args, report, model_config=config, rollout_params=trained_params, peak=peak)
     # The model that ships with dispgns (smaller than the paper's), for what users of the demo see.
     shipped_params, shipped, _ = dispgns.load_pretrained()
-    run("float32", trajs, args, report, model_config=shipped, tag="_shipped", rollout_params=shipped_params)
+    run("float32", trajs, args, report, model_config=shipped, tag="_shipped", rollout_params=shipped_params,
+        peak=peak)
     report["authors_pytorch"] = {"train_step_ms": AUTHORS_TRAIN_STEP_MS, "rollout_step_ms": AUTHORS_ROLLOUT_STEP_MS}
     report["speedup_vs_authors_train_step"] = AUTHORS_TRAIN_STEP_MS / report["train_step_ms"]
     report["speedup_vs_authors_rollout_step"] = AUTHORS_ROLLOUT_STEP_MS / report["rollout_step_ms"]
