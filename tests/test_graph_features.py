@@ -159,3 +159,25 @@ def test_default_candidate_search_falls_back_to_all_pairs_where_no_cell_list_fit
     close = np.abs(line[-1, :, 0][:, None] - line[-1, :, 0][None, :]) < 0.05
     assert len(senders) == int(close.sum())
     assert G.capacity_for(x[-1], connectivity_radius=0.2).cell is not None  # the usual case keeps the cell list
+
+
+def test_capacities_on_the_ladder_are_shared_rungs():
+    import math
+    rungs = set()
+    for edges in range(1, 20_000, 7):
+        for cell in (None, 4, 9, 13, 31):
+            cap = G.on_ladder(G.GraphCapacity(edges, cell))
+            assert cap.edges >= edges and cap.edges % 64 == 0
+            assert cap.edges <= max(64 * math.ceil(edges / 64) * 1.19, 64 * math.ceil(edges / 64) + 64)
+            assert G.on_ladder(cap) == cap  # a rung maps to itself
+            if cell is not None:
+                assert cell <= cap.cell <= 1.5 * cell
+        rungs.add(G.on_ladder(G.GraphCapacity(edges)).edges)
+    assert len(rungs) < 40  # 20,000 capacities on a few dozen rungs
+    # Trajectories a few pairs apart land on one capacity (one compilation).
+    assert G.on_ladder(G.GraphCapacity(2240, 10)) == G.on_ladder(G.GraphCapacity(2304, 11))
+    # With the particle count, never beyond all pairs or n per cell, never below the input.
+    assert G.on_ladder(G.GraphCapacity(700, 20), 30) == G.GraphCapacity(768, 24)
+    assert G.on_ladder(G.GraphCapacity(800, 20), 30) == G.GraphCapacity(870, 24)
+    assert G.on_ladder(G.GraphCapacity(870, 29), 30) == G.GraphCapacity(870, 30)
+    assert G.on_ladder(G.GraphCapacity(0), 1) == G.GraphCapacity(0)

@@ -264,3 +264,30 @@ def test_bad_values_are_rejected(params, inputs):
     # Padding radii may be anything.
     mask = jnp.arange(N) != 3
     predict_position(params, x, a.at[3].set(0.0), model_config=TINY, mask=mask, capacity=CAP)
+
+
+def test_rollouts_of_other_trajectories_reuse_the_compiled_capacities(params, monkeypatch):
+    """Data-sized capacities go on the ladder, so two trajectories with different pair counts share them."""
+    from dispgns import simulator
+    from dispgns.graph import host_count_pairs
+    with np.load(DATA) as d:  # all 150 particles: enough pairs for capacities a rung apart
+        x, a = jnp.asarray(d["positions"], jnp.float32), jnp.asarray(d["radius"], jnp.float32)
+    seen = []
+    real_chunk = simulator._rollout_chunk
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["capacity"])
+        return real_chunk(*args, **kwargs)
+
+    monkeypatch.setattr(simulator, "_rollout_chunk", spy)
+    # The same packing squeezed by 3 %: 1,412 and 1,476 pairs, capacities 1,600 and 1,664 off the ladder.
+    windows = [x, x * 0.97]
+    pairs = [int(host_count_pairs(w[-1], connectivity_radius=TINY.connectivity_radius)) for w in windows]
+    assert pairs[0] != pairs[1]
+    capacities = []
+    for w, count in zip(windows, pairs):
+        seen.clear()
+        rollout(params, w, a, 4, model_config=TINY)
+        capacities.append(seen[0])
+        assert seen[0].edges >= count * 1.1  # still the head-room asked for
+    assert capacities[0] == capacities[1]

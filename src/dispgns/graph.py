@@ -12,7 +12,9 @@ live in arrays of static size so that they can be built inside ``jit``,
 * a graph that needs more slots than it has sets ``overflow`` instead of
   dropping edges; the caller grows the capacity outside ``jit``
   (:func:`grow_capacity`) and recomputes, or poisons its result with NaN when
-  it is traced and cannot grow.
+  it is traced and cannot grow; :func:`on_ladder` rounds a capacity up to a
+  fixed geometric ladder, so that capacities sized from different data
+  repeat (one compilation each).
 
 Positions are in normalised box units (the box is ``bounds``, by default
 ``[-1, 1]^D``). Padding particles (``mask == False``) are parked on a lattice
@@ -371,6 +373,40 @@ def capacity_for(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conn
         occupancy = host_max_cell_occupancy(frames, mask, connectivity_radius=connectivity_radius, bounds=bounds)
         cell = max(4, math.ceil(occupancy * (1.0 + 4 * margin)) + 1)
     return GraphCapacity(edges=min(round_capacity(pairs, margin=margin), n * (n - 1)), cell=cell)
+
+
+def _rung(need: int) -> int:
+    """The smallest ``ceil(2^(k/4))``, ``k = 0, 1, ...``, that is ``>= need`` (rungs at most ~19 % apart)."""
+    k = max(0, 4 * (max(int(need), 1).bit_length() - 1))
+    while math.ceil(2.0 ** (k / 4)) < need:
+        k += 1
+    return math.ceil(2.0 ** (k / 4))
+
+
+def _coarse_rung(need: int) -> int:
+    """The smallest ``2^k`` or ``3 x 2^(k-1)`` that is ``>= need``."""
+    power = 1 << max(int(need) - 1, 0).bit_length()
+    return power * 3 // 4 if power >= 4 and power * 3 // 4 >= need else power
+
+
+def on_ladder(capacity: GraphCapacity, n: int | None = None, *, quantum: int = 64) -> GraphCapacity:
+    """``capacity`` rounded up to the next rung of a fixed geometric ladder (edges and cells).
+
+    A capacity sized from data differs by a few pairs from one trajectory or
+    call to the next, and every new one is a new compilation. Rounded up to
+    rungs about 19 % apart (edges in multiples of ``quantum``) the capacities
+    repeat, so later rollouts and steps reuse the programs compiled for
+    earlier ones. Capped at all pairs (edges) and at ``n`` (cells) when the
+    particle count ``n`` is given; never below ``capacity``.
+    """
+    edges = max(quantum * _rung(math.ceil(capacity.edges / quantum)), capacity.edges)
+    # Cells on a coarser ladder (2^k and 1.5 x 2^k): a cell's head-room is cheap, and the fullest cell of a
+    # settling bed varies more between trajectories than the pair count does.
+    cell = None if capacity.cell is None else _coarse_rung(capacity.cell)
+    if n is not None:
+        edges = max(min(edges, n * (n - 1)), capacity.edges)
+        cell = None if cell is None else max(min(cell, n), capacity.cell)
+    return GraphCapacity(edges=edges, cell=cell)
 
 
 def grow_capacity(capacity: GraphCapacity, n: int | None = None, factor: float = 1.5) -> GraphCapacity:

@@ -17,7 +17,10 @@ Graph capacity. Every function takes ``capacity`` (a
 :class:`~dispgns.graph.GraphCapacity` or an int, the number of ordered pairs
 ``s != r`` the graph can hold). Called with concrete arrays, ``None`` sizes it
 from the data and an overflow grows it and recomputes; nothing is ever
-dropped. Under a JAX transformation (``jit``, ``vmap``, ``grad``) sizes
+dropped. Sizes chosen here are rounded up to a fixed ladder of capacities
+(:func:`dispgns.graph.on_ladder`, rungs ~19 % apart), so that rollouts of
+other trajectories, and steps on other positions, mostly reuse the programs
+already compiled. Under a JAX transformation (``jit``, ``vmap``, ``grad``) sizes
 cannot change: ``capacity`` is then used as given; ``None`` sizes it from the
 positions if they are concrete (e.g. only ``params`` traced) and otherwise
 means all ``N (N - 1)`` pairs (exact but slow). Any overflow poisons the
@@ -280,15 +283,18 @@ def _predict(params, position_seq, radius, mask, capacity, model_config):
         # Under a transformation the graph size cannot adapt: size it from the
         # positions when they are concrete, else take all pairs.
         if capacity is None:
-            capacity = _full_capacity(n) if _is_traced(position_seq, mask) else graph_lib.capacity_for(
-                np.asarray(position_seq)[-1], mask, connectivity_radius=model_config.connectivity_radius,
-                bounds=model_config.bounds)
+            capacity = _full_capacity(n) if _is_traced(position_seq, mask) else graph_lib.on_ladder(
+                graph_lib.capacity_for(np.asarray(position_seq)[-1], mask,
+                                       connectivity_radius=model_config.connectivity_radius,
+                                       bounds=model_config.bounds), n)
         acc, nxt, overflow = one_step(params, position_seq, radius, mask, capacity, model_config)
         poison = jnp.where(overflow, jnp.nan, 0.0).astype(acc.dtype)
         return acc + poison, nxt + poison
     if capacity is None:
-        capacity = graph_lib.capacity_for(position_seq[-1], mask, connectivity_radius=model_config.connectivity_radius,
-                                          bounds=model_config.bounds)
+        # On the ladder: calls on other positions mostly land on a capacity already compiled.
+        capacity = graph_lib.on_ladder(graph_lib.capacity_for(
+            position_seq[-1], mask, connectivity_radius=model_config.connectivity_radius,
+            bounds=model_config.bounds), n)
     while True:
         acc, nxt, overflow = _step_jit(params, position_seq, radius, mask, capacity=capacity,
                                        model_config=model_config)
@@ -470,16 +476,18 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
             if _is_traced(window, mask):
                 capacity = _full_capacity(n)
             else:
-                capacity = graph_lib.capacity_for(np.asarray(window)[-1], mask,
-                                                  connectivity_radius=model_config.connectivity_radius,
-                                                  bounds=model_config.bounds, margin=0.5)
+                capacity = graph_lib.on_ladder(graph_lib.capacity_for(
+                    np.asarray(window)[-1], mask, connectivity_radius=model_config.connectivity_radius,
+                    bounds=model_config.bounds, margin=0.5), n)
         _, positions, flags = _scan_steps(params, window, radius, mask, length=n_steps, capacity=capacity,
                                           model_config=model_config)
         return positions + jnp.where(flags, jnp.nan, 0.0).astype(positions.dtype)[:, None, None]
 
     if capacity is None:
-        capacity = graph_lib.capacity_for(window[-1], mask, connectivity_radius=model_config.connectivity_radius,
-                                          bounds=model_config.bounds, margin=0.1)
+        # On the ladder (as every grown capacity): rollouts of other trajectories reuse the compiled chunks.
+        capacity = graph_lib.on_ladder(graph_lib.capacity_for(
+            window[-1], mask, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds,
+            margin=0.1), n)
     run_chunk = lambda w, limit, length, capacity: _rollout_chunk(params, w, radius, mask, limit, length=length,
                                                                   capacity=capacity, model_config=model_config)
     grow = lambda capacity, position: _grown(capacity, position, mask, model_config)
@@ -487,13 +495,13 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
 
 
 def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -> GraphCapacity:
-    """A capacity larger than ``capacity`` that fits the graph of ``position`` with head-room."""
+    """A capacity larger than ``capacity`` that fits the graph of ``position`` with head-room (on the ladder)."""
     n = position.shape[0]
     grown = graph_lib.grow_capacity(capacity, n, factor=1.25)
     fit = graph_lib.capacity_for(position, mask, connectivity_radius=model_config.connectivity_radius,
                                  bounds=model_config.bounds, use_cell_list=capacity.cell is not None, margin=0.2)
     cell = None if capacity.cell is None else max(grown.cell, fit.cell)
-    return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)
+    return graph_lib.on_ladder(GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell), n)
 
 
 def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig,
@@ -582,7 +590,7 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
 
 def _batch_capacity(capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *,
                     margin: float) -> GraphCapacity:
-    """A capacity that fits every trajectory's graph of ``positions`` ``(B, N, D)`` (grown past ``capacity``)."""
+    """A capacity that fits every trajectory's graph of ``positions`` ``(B, N, D)``, grown past ``capacity``, on the ladder."""
     positions, mask = np.asarray(positions), np.asarray(mask)
     use_cells = None if capacity is None else capacity.cell is not None
     fits = [graph_lib.capacity_for(p, m, connectivity_radius=model_config.connectivity_radius,
@@ -590,8 +598,9 @@ def _batch_capacity(capacity: GraphCapacity | None, positions, mask, model_confi
             for p, m in zip(positions, mask)]
     cells = [f.cell for f in fits if f.cell is not None]
     fit = GraphCapacity(edges=max(f.edges for f in fits), cell=max(cells) if cells else None)
+    n = positions.shape[1]
     if capacity is None:
-        return fit
-    grown = graph_lib.grow_capacity(capacity, positions.shape[1], factor=1.25)
+        return graph_lib.on_ladder(fit, n)
+    grown = graph_lib.grow_capacity(capacity, n, factor=1.25)
     cell = None if capacity.cell is None else max(grown.cell, fit.cell or 0)
-    return GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell)
+    return graph_lib.on_ladder(GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell), n)
