@@ -129,10 +129,12 @@ def graph_features(position_seq, radius, *, bounds=graph_lib.DEFAULT_BOUNDS, con
         raise ValueError(f"expected position_seq (C, N, D) and radius (N,), got {position_seq.shape} and {radius.shape}")
     n = position_seq.shape[1]
     bounds = graph_lib.as_bounds(bounds, position_seq.shape[2])
-    capacity = graph_lib.capacity_for(position_seq[-1], connectivity_radius=connectivity_radius, bounds=bounds)
+    # On the capacity ladder: calls on other frames mostly reuse the compiled graph builder.
+    capacity = graph_lib.on_ladder(graph_lib.capacity_for(position_seq[-1], connectivity_radius=connectivity_radius,
+                                                          bounds=bounds), n)
     g = _graph_jit(position_seq[-1], connectivity_radius, capacity, bounds)
     while bool(g.overflow):
-        capacity = graph_lib.grow_capacity(capacity, n)
+        capacity = graph_lib.on_ladder(graph_lib.grow_capacity(capacity, n), n)
         g = _graph_jit(position_seq[-1], connectivity_radius, capacity, bounds)
     senders, receivers = np.asarray(g.senders), np.asarray(g.receivers)
     keep = receivers < n
