@@ -590,7 +590,7 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
 
 def _batch_capacity(capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *,
                     margin: float) -> GraphCapacity:
-    """A capacity that fits every trajectory's graph of ``positions`` ``(B, N, D)``, grown past ``capacity``, on the ladder."""
+    """A capacity on the ladder that fits every graph of ``positions`` ``(B, N, D)`` (grown past ``capacity``)."""
     positions, mask = np.asarray(positions), np.asarray(mask)
     use_cells = None if capacity is None else capacity.cell is not None
     fits = [graph_lib.capacity_for(p, m, connectivity_radius=model_config.connectivity_radius,
