@@ -37,13 +37,22 @@ _SOURCE = r"""
 #include <pthread.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 #include <time.h>
 
 /* Independent accumulators per thread, more than FMA latency x pipes, and
    with the two operands still within the register file (32 zmm, 16 ymm). */
 #if defined(WIDE)
+typedef __m512 vec;
+#define SET1 _mm512_set1_ps
+#define FMA _mm512_fmadd_ps
+#define LANES 16
 #define CHAINS 16
 #else
+typedef __m256 vec;
+#define SET1 _mm256_set1_ps
+#define FMA _mm256_fmadd_ps
+#define LANES 8
 #define CHAINS 12
 #endif
 static long iterations;
@@ -56,48 +65,36 @@ static double now(void) {
   return t.tv_sec + 1e-9 * t.tv_nsec;
 }
 
+static float lane_sum(vec v) {
+  float lanes[LANES], total = 0.0f;
+  memcpy(lanes, &v, sizeof v);
+  for (int k = 0; k < LANES; k++) total += lanes[k];
+  return total;
+}
+
 static void *work(void *arg) {
   int id = (int)(long)arg;
   float total = 0.0f;
-#if defined(WIDE)
+  vec acc[CHAINS];
   if (kind == 0) {
-    __m512 acc[CHAINS];
-    __m512 b = _mm512_set1_ps(0.999f), c = _mm512_set1_ps(1e-7f);
-    for (int i = 0; i < CHAINS; i++) acc[i] = _mm512_set1_ps(1.0f + i);
+    vec b = SET1(0.999f), c = SET1(1e-7f);
+    for (int i = 0; i < CHAINS; i++) acc[i] = SET1(1.0f + i);
     for (long n = 0; n < iterations; n++) {
 #pragma GCC unroll 16
-      for (int i = 0; i < CHAINS; i++) acc[i] = _mm512_fmadd_ps(acc[i], b, c);
+      for (int i = 0; i < CHAINS; i++) acc[i] = FMA(acc[i], b, c);
     }
-    for (int i = 0; i < CHAINS; i++) total += _mm512_reduce_add_ps(acc[i]);
   }
 #if defined(BF16)
   if (kind == 1) {
-    __m512 acc[CHAINS];
     __m512bh x = (__m512bh)_mm512_set1_epi16(0x3f80), y = (__m512bh)_mm512_set1_epi16(0x3400);
     for (int i = 0; i < CHAINS; i++) acc[i] = _mm512_setzero_ps();
     for (long n = 0; n < iterations; n++) {
 #pragma GCC unroll 16
       for (int i = 0; i < CHAINS; i++) acc[i] = _mm512_dpbf16_ps(acc[i], x, y);
     }
-    for (int i = 0; i < CHAINS; i++) total += _mm512_reduce_add_ps(acc[i]);
   }
 #endif
-#else
-  if (kind == 0) {
-    __m256 acc[CHAINS];
-    __m256 b = _mm256_set1_ps(0.999f), c = _mm256_set1_ps(1e-7f);
-    for (int i = 0; i < CHAINS; i++) acc[i] = _mm256_set1_ps(1.0f + i);
-    for (long n = 0; n < iterations; n++) {
-#pragma GCC unroll 12
-      for (int i = 0; i < CHAINS; i++) acc[i] = _mm256_fmadd_ps(acc[i], b, c);
-    }
-    float lanes[8];
-    for (int i = 0; i < CHAINS; i++) {
-      _mm256_storeu_ps(lanes, acc[i]);
-      for (int k = 0; k < 8; k++) total += lanes[k];
-    }
-  }
-#endif
+  for (int i = 0; i < CHAINS; i++) total += lane_sum(acc[i]);
   sink[id % 256] = total;
   return 0;
 }
@@ -139,8 +136,10 @@ class _Kernel:
             raise RuntimeError("no C compiler (set CC)")
         source, self.binary = directory / "peak.c", directory / "peak"
         source.write_text(_SOURCE)
-        isa = ["-mavx512f", "-DWIDE"] + (["-mavx512bf16", "-DBF16"] if self.bf16 else []) if self.wide else [
-            "-mavx2", "-mfma"]
+        if self.wide:
+            isa = ["-mavx512f", "-DWIDE"] + (["-mavx512bf16", "-DBF16"] if self.bf16 else [])
+        else:
+            isa = ["-mavx2", "-mfma"]
         subprocess.run([compiler, "-O2", *isa, "-pthread", str(source), "-o", str(self.binary)], check=True,
                        capture_output=True, text=True)
 
