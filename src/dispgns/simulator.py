@@ -283,18 +283,13 @@ def _predict(params, position_seq, radius, mask, capacity, model_config):
         # Under a transformation the graph size cannot adapt: size it from the
         # positions when they are concrete, else take all pairs.
         if capacity is None:
-            capacity = _full_capacity(n) if _is_traced(position_seq, mask) else graph_lib.on_ladder(
-                graph_lib.capacity_for(np.asarray(position_seq)[-1], mask,
-                                       connectivity_radius=model_config.connectivity_radius,
-                                       bounds=model_config.bounds), n)
+            capacity = _full_capacity(n) if _is_traced(position_seq, mask) else _fitted(
+                np.asarray(position_seq)[-1], mask, model_config)
         acc, nxt, overflow = one_step(params, position_seq, radius, mask, capacity, model_config)
         poison = jnp.where(overflow, jnp.nan, 0.0).astype(acc.dtype)
         return acc + poison, nxt + poison
     if capacity is None:
-        # On the ladder: calls on other positions mostly land on a capacity already compiled.
-        capacity = graph_lib.on_ladder(graph_lib.capacity_for(
-            position_seq[-1], mask, connectivity_radius=model_config.connectivity_radius,
-            bounds=model_config.bounds), n)
+        capacity = _fitted(position_seq[-1], mask, model_config)
     while True:
         acc, nxt, overflow = _step_jit(params, position_seq, radius, mask, capacity=capacity,
                                        model_config=model_config)
@@ -476,32 +471,33 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
             if _is_traced(window, mask):
                 capacity = _full_capacity(n)
             else:
-                capacity = graph_lib.on_ladder(graph_lib.capacity_for(
-                    np.asarray(window)[-1], mask, connectivity_radius=model_config.connectivity_radius,
-                    bounds=model_config.bounds, margin=0.5), n)
+                capacity = _fitted(np.asarray(window)[-1], mask, model_config, margin=0.5)
         _, positions, flags = _scan_steps(params, window, radius, mask, length=n_steps, capacity=capacity,
                                           model_config=model_config)
         return positions + jnp.where(flags, jnp.nan, 0.0).astype(positions.dtype)[:, None, None]
 
     if capacity is None:
-        # On the ladder (as every grown capacity): rollouts of other trajectories reuse the compiled chunks.
-        capacity = graph_lib.on_ladder(graph_lib.capacity_for(
-            window[-1], mask, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds,
-            margin=0.1), n)
+        capacity = _fitted(window[-1], mask, model_config, margin=0.1)
     run_chunk = lambda w, limit, length, capacity: _rollout_chunk(params, w, radius, mask, limit, length=length,
                                                                   capacity=capacity, model_config=model_config)
     grow = lambda capacity, position: _grown(capacity, position, mask, model_config)
     return _roll_in_chunks(run_chunk, window, n_steps, chunk_size, capacity, grow, axis=0)
 
 
-def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -> GraphCapacity:
-    """A capacity larger than ``capacity`` that fits the graph of ``position`` with head-room (on the ladder)."""
-    n = position.shape[0]
-    grown = graph_lib.grow_capacity(capacity, n, factor=1.25)
+def _fitted(position, mask, model_config: ModelConfig, *, margin: float = 0.05) -> GraphCapacity:
+    """A capacity on the ladder that fits the graph of ``position`` ``(N, D)`` with ``margin`` head-room (eager).
+
+    On the ladder, calls on other positions and other trajectories mostly
+    land on a capacity whose programs are already compiled.
+    """
     fit = graph_lib.capacity_for(position, mask, connectivity_radius=model_config.connectivity_radius,
-                                 bounds=model_config.bounds, use_cell_list=capacity.cell is not None, margin=0.2)
-    cell = None if capacity.cell is None else max(grown.cell, fit.cell)
-    return graph_lib.on_ladder(GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell), n)
+                                 bounds=model_config.bounds, margin=margin)
+    return graph_lib.on_ladder(fit, position.shape[0])
+
+
+def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -> GraphCapacity:
+    """A capacity larger than ``capacity`` that fits the graph of ``position`` ``(N, D)`` with head-room."""
+    return _batch_capacity(capacity, np.asarray(position)[None], np.asarray(mask)[None], model_config, margin=0.2)
 
 
 def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig,
