@@ -140,8 +140,12 @@ class _Kernel:
             isa = ["-mavx512f", "-DWIDE"] + (["-mavx512bf16", "-DBF16"] if self.bf16 else [])
         else:
             isa = ["-mavx2", "-mfma"]
-        subprocess.run([compiler, "-O2", *isa, "-pthread", str(source), "-o", str(self.binary)], check=True,
-                       capture_output=True, text=True)
+        subprocess.run(
+            [compiler, "-O2", *isa, "-pthread", str(source), "-o", str(self.binary)],
+            check=True,
+            capture_output=True,
+            text=True,
+        )
 
     def flop_per_iteration(self, bf16: bool) -> float:
         lanes, chains = (16, 16) if self.wide else (8, 12)
@@ -152,8 +156,12 @@ class _Kernel:
         """GFLOP/s of one run of ``threads`` threads lasting about ``seconds``."""
         iterations = 1_000_000
         while True:
-            out = subprocess.run([str(self.binary), str(threads), "1" if bf16 else "0", str(iterations)],
-                                 check=True, capture_output=True, text=True)
+            out = subprocess.run(
+                [str(self.binary), str(threads), "1" if bf16 else "0", str(iterations)],
+                check=True,
+                capture_output=True,
+                text=True,
+            )
             wall = float(out.stdout)
             if wall >= seconds / 3:
                 return threads * self.flop_per_iteration(bf16) * iterations / wall / 1e9
@@ -192,13 +200,17 @@ def main():
     for threads in range(1, (os.cpu_count() or 1) + 1):
         peak = fma_peak(threads, args.repeats)
         if peak is None:
-            raise SystemExit("cannot measure the FMA peak here (needs x86-64 with AVX2+FMA or AVX-512, and a C "
-                             "compiler: set CC)")
+            raise SystemExit(
+                "cannot measure the FMA peak here (needs x86-64 with AVX2+FMA or AVX-512, and a C compiler: set CC)"
+            )
         report["isa"] = peak["isa"]
         report[f"float32_gflops_per_s_{threads}_threads"] = peak["float32"]
         report[f"bfloat16_gflops_per_s_{threads}_threads"] = peak["bfloat16"]
-        print(f"{threads} thread(s): float32 {peak['float32']:.0f} GFLOP/s"
-              + ("" if peak["bfloat16"] is None else f", bfloat16 dot {peak['bfloat16']:.0f} GFLOP/s"), flush=True)
+        print(
+            f"{threads} thread(s): float32 {peak['float32']:.0f} GFLOP/s"
+            + ("" if peak["bfloat16"] is None else f", bfloat16 dot {peak['bfloat16']:.0f} GFLOP/s"),
+            flush=True,
+        )
     print(json.dumps(report))
 
 

@@ -50,6 +50,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 
 import dispgns
 from dispgns.data.examples import BatchStream
@@ -59,8 +60,6 @@ from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
 from dispgns.simulator import _rollout_chunk
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
 from dispgns.training.checkpoint import load_model
-
-from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 
 RADII_MM = (2.25, 3.25, 3.75, 4.75)
 # The authors' PyTorch code with its default hyper-parameters, measured on this 2-core machine:
@@ -85,18 +84,30 @@ def paper_network(directory: Path | None):
         return None, None
     if not (Path(directory) / "model.json").is_file():
         if Path(directory) != PAPER_NETWORK:
-            raise SystemExit(f"--rollout-model {directory}: no model.json there; expected a model directory "
-                             "written by dispgns train (RUN/model) or 'none'")
+            raise SystemExit(
+                f"--rollout-model {directory}: no model.json there; expected a model directory "
+                "written by dispgns train (RUN/model) or 'none'"
+            )
         print(f"no trained paper-size model in {directory}: rollouts use untrained weights", flush=True)
         return None, None
     params, config, _ = load_model(directory)
     expected = ModelConfig()
-    shape = ("latent_size", "hidden_layers", "hidden_size", "message_passing_steps", "input_sequence_length",
-             "dim", "activation", "connectivity_radius")
+    shape = (
+        "latent_size",
+        "hidden_layers",
+        "hidden_size",
+        "message_passing_steps",
+        "input_sequence_length",
+        "dim",
+        "activation",
+        "connectivity_radius",
+    )
     wrong = {f: getattr(config, f) for f in shape if getattr(config, f) != getattr(expected, f)}
     if wrong:
-        raise SystemExit(f"{directory}/model.json: not the paper's network ({wrong}; expected "
-                         f"{ {f: getattr(expected, f) for f in wrong} })")
+        raise SystemExit(
+            f"{directory}/model.json: not the paper's network ({wrong}; expected "
+            f"{ {f: getattr(expected, f) for f in wrong} })"
+        )
     return params, config
 
 
@@ -119,10 +130,15 @@ def machine_info() -> dict:
             cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "load_average_1min": os.getloadavg()[0],
-            "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
-            "xla_flags": os.environ.get("XLA_FLAGS", ""),
-            "host_allocator_tuned": dispgns.runtime.host_allocator_tuned()}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "load_average_1min": os.getloadavg()[0],
+        "jax": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "host_allocator_tuned": dispgns.runtime.host_allocator_tuned(),
+    }
 
 
 def trajectories(n_particles: int, frames: int, seeds=(0, 1)):
@@ -130,11 +146,16 @@ def trajectories(n_particles: int, frames: int, seeds=(0, 1)):
     cfg = PhysicsConfig()
     out = []
     for seed in seeds:
-        state = sample_initial_state(jax.random.key(seed), [r * 1e-3 for r in RADII_MM], cfg,
-                                     n_particles=n_particles, start_height=-0.03)
+        state = sample_initial_state(
+            jax.random.key(seed), [r * 1e-3 for r in RADII_MM], cfg, n_particles=n_particles, start_height=-0.03
+        )
         x = np.asarray(simulate(state.position, state.velocity, state.radius, cfg, n_frames=frames))
-        out.append(dispgns.Trajectory(position=(x / cfg.box_half_size).astype(np.float32),
-                                      radius=(np.asarray(state.radius) / cfg.box_half_size).astype(np.float32)))
+        out.append(
+            dispgns.Trajectory(
+                position=(x / cfg.box_half_size).astype(np.float32),
+                radius=(np.asarray(state.radius) / cfg.box_half_size).astype(np.float32),
+            )
+        )
     return out
 
 
@@ -147,8 +168,11 @@ def network_options(dtype) -> dict:
 def matmul_rate(m: int, k: int, n: int, dtype=jnp.float32) -> float:
     a = jax.random.normal(jax.random.key(0), (m, k)).astype(dtype)
     b = jax.random.normal(jax.random.key(1), (k, n)).astype(dtype)
-    f = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32)).lower(a, b).compile(
-        compiler_options=network_options(dtype))
+    f = (
+        jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32))
+        .lower(a, b)
+        .compile(compiler_options=network_options(dtype))
+    )
     wall, _ = timed(lambda: f(a, b), 20)
     return 2.0 * m * k * n / wall / 1e9
 
@@ -180,9 +204,15 @@ def network_flops(config: ModelConfig, nodes: int, edges: int) -> float:
         return 2.0 * rows * sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
 
     total = mlp(nodes, config.node_feature_size, L) + mlp(edges, config.edge_feature_size, L)
-    per_block = (2.0 * nodes * L * 2 * H  # node parts of the message MLP's first layer, once per node
-                 + 2.0 * edges * L * H + mlp(edges, H, L) - 2.0 * edges * H * H  # the rest of the message MLP
-                 + mlp(nodes, 2 * L, L) + mlp(nodes, L, L) + mlp(edges, L, L))
+    per_block = (
+        2.0 * nodes * L * 2 * H  # node parts of the message MLP's first layer, once per node
+        + 2.0 * edges * L * H
+        + mlp(edges, H, L)
+        - 2.0 * edges * H * H  # the rest of the message MLP
+        + mlp(nodes, 2 * L, L)
+        + mlp(nodes, L, L)
+        + mlp(edges, L, L)
+    )
     # The last block's edge update feeds nothing (the decoder reads nodes only): XLA drops it.
     return total + config.message_passing_steps * per_block - mlp(edges, L, L) + mlp(nodes, L, config.dim)
 
@@ -221,8 +251,11 @@ def edge_mlp_rate(edges: int, dtype: str, repeats: int = 15) -> tuple[float, flo
     grad = jax.jit(jax.grad(loss, argnums=(0, 1))).lower(params, x).compile(compiler_options=options)
     a = x.astype(jnp.float32 if low is None else low)
     b = jax.random.normal(jax.random.key(2), (128, 128)).astype(a.dtype)
-    product = jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32)).lower(a, b).compile(
-        compiler_options=options)
+    product = (
+        jax.jit(lambda a, b: jnp.dot(a, b, preferred_element_type=jnp.float32))
+        .lower(a, b)
+        .compile(compiler_options=options)
+    )
     jax.block_until_ready(grad(params, x))
     jax.block_until_ready(product(a, b))
     mlp_times, matmul_times = [], []
@@ -238,8 +271,16 @@ def edge_mlp_rate(edges: int, dtype: str, repeats: int = 15) -> tuple[float, flo
     return mlp_flops / np.median(mlp_times) / 1e9, 2.0 * edges * 128 * 128 / np.median(matmul_times) / 1e9
 
 
-def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None = None, tag: str | None = None,
-        rollout_params=None, peak: dict | None = None):
+def run(
+    dtype: str,
+    trajs,
+    args,
+    report: dict,
+    model_config: ModelConfig | None = None,
+    tag: str | None = None,
+    rollout_params=None,
+    peak: dict | None = None,
+):
     """Time one configuration; ``rollout_params``: trained weights for the rollouts (default: the initial ones).
 
     ``peak``: :func:`cpu_peak.fma_peak` of this machine (``None``: not
@@ -269,22 +310,24 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
 
     traj = trajs[0]
     start = traj.position.shape[0] - 6
-    window = jnp.asarray(traj.position[start - 100:start - 94])
+    window = jnp.asarray(traj.position[start - 100 : start - 94])
     radius = jnp.asarray(traj.radius)
     mask = jnp.ones(radius.shape, bool)
-    capacity = capacity_for(traj.position[start - 100:], connectivity_radius=0.2, margin=0.05)
+    capacity = capacity_for(traj.position[start - 100 :], connectivity_radius=0.2, margin=0.05)
     params = state.params if rollout_params is None else rollout_params
     steps = args.rollout_steps
     # What dispgns.rollout runs between its overflow checks, called directly (not inside another
     # jit) so that it compiles with dispgns.network_compiler_options.
-    chunk = lambda p, w: _rollout_chunk(p, w, radius, mask, jnp.int32(steps), length=steps, capacity=capacity,
-                                        model_config=model_config)
+    chunk = lambda p, w: _rollout_chunk(
+        p, w, radius, mask, jnp.int32(steps), length=steps, capacity=capacity, model_config=model_config
+    )
     n_real = int(radius.shape[0])
     flops_rollout = network_flops(model_config, n_real, capacity.edges + n_real)
     # The machine drifts within a minute: the rollout chunk (about a second)
     # and the matmul chain that gives its floor are timed in alternation.
-    chain, chain_flops = matmul_chain(capacity.edges + n_real, model_config.latent_size,
-                                      jnp.float32 if dtype == "float32" else jnp.bfloat16)
+    chain, chain_flops = matmul_chain(
+        capacity.edges + n_real, model_config.latent_size, jnp.float32 if dtype == "float32" else jnp.bfloat16
+    )
     _, _, taken, overflow = jax.block_until_ready(chunk(params, window))
     if bool(overflow):
         raise SystemExit(f"the timed rollout chunk outgrew its graph capacity ({capacity}) at step {int(taken)}")
@@ -326,50 +369,58 @@ def run(dtype: str, trajs, args, report: dict, model_config: ModelConfig | None 
 
     if tag is None:
         tag = "" if dtype == "float32" else "_bf16"
-    report.update({
-        f"train_step_ms{tag}": 1e3 * train_wall,
-        f"train_step_cpu_ms{tag}": 1e3 * train_cpu,
-        f"rollout_step_ms{tag}": 1e3 * rollout_step,
-        f"rollout_step_cpu_ms{tag}": 1e3 * roll_cpu / steps,
-        f"rollout_494_steps_s{tag}": full,
-        f"rollout_494_pairs_max{tag}": None if full_pairs is None else int(full_pairs.max()),
-        f"rollout_494_pairs_mean{tag}": None if full_pairs is None else float(full_pairs.mean()),
-        f"train_gflop{tag}": flops_train / 1e9,
-        f"train_gflop_xla{tag}": None if flops_xla is None else flops_xla / 1e9,
-        f"train_gflops_per_s{tag}": flops_train / train_wall / 1e9,
-        f"rollout_gflop_per_step{tag}": flops_rollout / 1e9,
-        f"rollout_gflops_per_s{tag}": flops_rollout / rollout_step / 1e9,
-        f"train_step_matmul_floor_ms{tag}": 1e3 * flops_train / matmul_rate_now,
-        f"rollout_step_matmul_floor_ms{tag}": 1e3 * flops_rollout / matmul_rate_now,
-        f"rollout_over_floor{tag}": rollout_step / (flops_rollout / matmul_rate_now),
-        f"matmul_chain_gflops_per_s{tag}": chain_rate / 1e9,
-        f"page_faults_per_train_step{tag}": faults_per_step,
-        f"edge_mlp_gflops_per_s{tag}": mlp_rate,
-        f"edge_matmul_gflops_per_s{tag}": edge_matmul_rate,
-        f"edge_mlp_fraction_of_matmul{tag}": mlp_rate / edge_matmul_rate,
-    })
+    report.update(
+        {
+            f"train_step_ms{tag}": 1e3 * train_wall,
+            f"train_step_cpu_ms{tag}": 1e3 * train_cpu,
+            f"rollout_step_ms{tag}": 1e3 * rollout_step,
+            f"rollout_step_cpu_ms{tag}": 1e3 * roll_cpu / steps,
+            f"rollout_494_steps_s{tag}": full,
+            f"rollout_494_pairs_max{tag}": None if full_pairs is None else int(full_pairs.max()),
+            f"rollout_494_pairs_mean{tag}": None if full_pairs is None else float(full_pairs.mean()),
+            f"train_gflop{tag}": flops_train / 1e9,
+            f"train_gflop_xla{tag}": None if flops_xla is None else flops_xla / 1e9,
+            f"train_gflops_per_s{tag}": flops_train / train_wall / 1e9,
+            f"rollout_gflop_per_step{tag}": flops_rollout / 1e9,
+            f"rollout_gflops_per_s{tag}": flops_rollout / rollout_step / 1e9,
+            f"train_step_matmul_floor_ms{tag}": 1e3 * flops_train / matmul_rate_now,
+            f"rollout_step_matmul_floor_ms{tag}": 1e3 * flops_rollout / matmul_rate_now,
+            f"rollout_over_floor{tag}": rollout_step / (flops_rollout / matmul_rate_now),
+            f"matmul_chain_gflops_per_s{tag}": chain_rate / 1e9,
+            f"page_faults_per_train_step{tag}": faults_per_step,
+            f"edge_mlp_gflops_per_s{tag}": mlp_rate,
+            f"edge_matmul_gflops_per_s{tag}": edge_matmul_rate,
+            f"edge_mlp_fraction_of_matmul{tag}": mlp_rate / edge_matmul_rate,
+        }
+    )
     peak_rate = None if peak is None else peak["float32" if dtype == "float32" else "bfloat16"]
     if peak_rate:
-        report.update({
-            f"train_step_ms_at_fma_peak{tag}": flops_train / peak_rate / 1e6,
-            f"rollout_step_ms_at_fma_peak{tag}": flops_rollout / peak_rate / 1e6,
-            f"rollout_fraction_of_fma_peak{tag}": flops_rollout / rollout_step / 1e9 / peak_rate,
-        })
+        report.update(
+            {
+                f"train_step_ms_at_fma_peak{tag}": flops_train / peak_rate / 1e6,
+                f"rollout_step_ms_at_fma_peak{tag}": flops_rollout / peak_rate / 1e6,
+                f"rollout_fraction_of_fma_peak{tag}": flops_rollout / rollout_step / 1e9 / peak_rate,
+            }
+        )
         if tag != "_shipped":  # the issue's 15 ms target is for the paper's network
             report[f"rollout_fraction_of_fma_peak_needed_for_target{tag}"] = flops_rollout / 15e-3 / 1e9 / peak_rate
     if tag == "":
-        report.update({
-            "edges_per_example": [int(p) + n for p, n in zip(pairs, batch.mask.sum(axis=1))],
-            "edge_slots_per_example": int(slots),
-            "particles_per_example": [int(n) for n in batch.mask.sum(axis=1)],
-            "parameters": count_parameters(params["network"]),
-        })
-    print(f"[{dtype}] train step {1e3 * train_wall:.1f} ms (cpu {1e3 * train_cpu:.0f} ms), "
-          f"{flops_train / 1e9:.1f} GFLOP -> {flops_train / train_wall / 1e9:.0f} GFLOP/s; rollout "
-          f"{1e3 * rollout_step:.1f} ms/step ({rollout_step / (flops_rollout / matmul_rate_now):.2f}x the matmul "
-          f"floor at {matmul_rate_now / 1e9:.0f} GFLOP/s); full 494-step rollout "
-          f"{full if full is None else round(full, 2)} s",
-          flush=True)
+        report.update(
+            {
+                "edges_per_example": [int(p) + n for p, n in zip(pairs, batch.mask.sum(axis=1))],
+                "edge_slots_per_example": int(slots),
+                "particles_per_example": [int(n) for n in batch.mask.sum(axis=1)],
+                "parameters": count_parameters(params["network"]),
+            }
+        )
+    print(
+        f"[{dtype}] train step {1e3 * train_wall:.1f} ms (cpu {1e3 * train_cpu:.0f} ms), "
+        f"{flops_train / 1e9:.1f} GFLOP -> {flops_train / train_wall / 1e9:.0f} GFLOP/s; rollout "
+        f"{1e3 * rollout_step:.1f} ms/step ({rollout_step / (flops_rollout / matmul_rate_now):.2f}x the matmul "
+        f"floor at {matmul_rate_now / 1e9:.0f} GFLOP/s); full 494-step rollout "
+        f"{full if full is None else round(full, 2)} s",
+        flush=True,
+    )
 
 
 def main():
@@ -377,9 +428,13 @@ def main():
     parser.add_argument("--quick", action="store_true", help="float32 only, no full 494-step rollout")
     parser.add_argument("--repeats", type=int, default=20, help="timed training steps (median)")
     parser.add_argument("--rollout-steps", type=int, default=50, help="steps per timed rollout chunk")
-    parser.add_argument("--rollout-model", type=Path, default=PAPER_NETWORK,
-                        help="a trained paper-size model directory whose weights drive the rollouts "
-                             "(default: benchmarks/data/paper_network; 'none': untrained weights)")
+    parser.add_argument(
+        "--rollout-model",
+        type=Path,
+        default=PAPER_NETWORK,
+        help="a trained paper-size model directory whose weights drive the rollouts "
+        "(default: benchmarks/data/paper_network; 'none': untrained weights)",
+    )
     args = parser.parse_args()
     args.full = not args.quick
 
@@ -389,25 +444,30 @@ def main():
     report["matmul_gflops_per_s"] = matmul_rate(2048, 2048, 2048)
     report["matmul_4800x128x128_gflops_per_s"] = matmul_rate(4800, 128, 128)
     report["matmul_4800x128x128_bf16_gflops_per_s"] = matmul_rate(4800, 128, 128, jnp.bfloat16)
-    print(f"matmul 2048^2 {report['matmul_gflops_per_s']:.0f} GFLOP/s, 4800x128x128 "
-          f"{report['matmul_4800x128x128_gflops_per_s']:.0f} GFLOP/s (bf16 "
-          f"{report['matmul_4800x128x128_bf16_gflops_per_s']:.0f})", flush=True)
+    print(
+        f"matmul 2048^2 {report['matmul_gflops_per_s']:.0f} GFLOP/s, 4800x128x128 "
+        f"{report['matmul_4800x128x128_gflops_per_s']:.0f} GFLOP/s (bf16 "
+        f"{report['matmul_4800x128x128_bf16_gflops_per_s']:.0f})",
+        flush=True,
+    )
     # The CPU's own limit (no memory traffic, every FMA pipe busy): times below flops / peak are impossible.
     peak = fma_peak() if jax.default_backend() == "cpu" else None
     report["fma_peak_gflops_per_s"] = None if peak is None else peak["float32"]
     report["fma_peak_bf16_gflops_per_s"] = None if peak is None else peak["bfloat16"]
     if peak is not None:
-        print(f"CPU peak (benchmarks/cpu_peak.py): float32 FMA {peak['float32']:.0f} GFLOP/s"
-              + ("" if peak["bfloat16"] is None else f", bfloat16 dot {peak['bfloat16']:.0f} GFLOP/s"), flush=True)
+        print(
+            f"CPU peak (benchmarks/cpu_peak.py): float32 FMA {peak['float32']:.0f} GFLOP/s"
+            + ("" if peak["bfloat16"] is None else f", bfloat16 dot {peak['bfloat16']:.0f} GFLOP/s"),
+            flush=True,
+        )
     trained_params, trained_config = paper_network(args.rollout_model)
     report["rollout_weights"] = "untrained" if trained_params is None else str(args.rollout_model)
-    for dtype in (("float32",) if args.quick else ("float32", "bfloat16")):
+    for dtype in ("float32",) if args.quick else ("float32", "bfloat16"):
         config = None if trained_config is None else dataclasses.replace(trained_config, matmul_dtype=dtype)
         run(dtype, trajs, args, report, model_config=config, rollout_params=trained_params, peak=peak)
     # The model that ships with dispgns (smaller than the paper's), for what users of the demo see.
     shipped_params, shipped, _ = dispgns.load_pretrained()
-    run("float32", trajs, args, report, model_config=shipped, tag="_shipped", rollout_params=shipped_params,
-        peak=peak)
+    run("float32", trajs, args, report, model_config=shipped, tag="_shipped", rollout_params=shipped_params, peak=peak)
     report["authors_pytorch"] = {"train_step_ms": AUTHORS_TRAIN_STEP_MS, "rollout_step_ms": AUTHORS_ROLLOUT_STEP_MS}
     report["speedup_vs_authors_train_step"] = AUTHORS_TRAIN_STEP_MS / report["train_step_ms"]
     report["speedup_vs_authors_rollout_step"] = AUTHORS_ROLLOUT_STEP_MS / report["rollout_step_ms"]

@@ -38,15 +38,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import torch
+from gnn import machine_info, trajectories
 from torch import nn
 
-import dispgns
 from dispgns.data.examples import BatchStream
 from dispgns.graph import capacity_for
 from dispgns.model import ModelConfig
 from dispgns.simulator import _rollout_chunk
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
-from gnn import machine_info, trajectories
 
 LATENT, HIDDEN, BLOCKS, C, D = 128, 128, 10, 6, 2
 RADIUS_GRAPH, CLIP, NOISE = 0.2, 4.0, 5e-4
@@ -60,16 +59,24 @@ def mlp(fan_in: int, out: int, layer_norm: bool = True) -> nn.Sequential:
 class Block(nn.Module):
     def __init__(self, split_first_layer: bool):
         super().__init__()
-        self.message, self.node, self.node_2, self.edge = (mlp(3 * LATENT, LATENT), mlp(2 * LATENT, LATENT),
-                                                           mlp(LATENT, LATENT), mlp(LATENT, LATENT))
+        self.message, self.node, self.node_2, self.edge = (
+            mlp(3 * LATENT, LATENT),
+            mlp(2 * LATENT, LATENT),
+            mlp(LATENT, LATENT),
+            mlp(LATENT, LATENT),
+        )
         self.split_first_layer = split_first_layer
 
     def forward(self, x, e, senders, receivers):
         if self.split_first_layer:
             # dispgns' form: [x_i, x_j, e_ij] W = (x W_i)[i] + (x W_j)[j] + e W_e, node parts once per node.
             first, w = self.message[0], self.message[0].weight
-            h = ((x @ w[:, :LATENT].T).index_select(0, receivers) + (x @ w[:, LATENT:2 * LATENT].T).index_select(
-                0, senders) + e @ w[:, 2 * LATENT:].T + first.bias)
+            h = (
+                (x @ w[:, :LATENT].T).index_select(0, receivers)
+                + (x @ w[:, LATENT : 2 * LATENT].T).index_select(0, senders)
+                + e @ w[:, 2 * LATENT :].T
+                + first.bias
+            )
             m = self.message[1:](h)
         else:
             m = self.message(torch.cat([x.index_select(0, receivers), x.index_select(0, senders), e], dim=-1))
@@ -146,10 +153,17 @@ def timed(fn) -> float:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rounds", type=int, default=8, help="alternating rounds (medians over them)")
-    parser.add_argument("--split-first-layer", action="store_true",
-                        help="PyTorch also splits the first message layer as dispgns does (same FLOPs)")
-    parser.add_argument("--matmul-dtype", default="float32", choices=("float32", "bfloat16"),
-                        help="dispgns' ModelConfig.matmul_dtype (PyTorch stays float32)")
+    parser.add_argument(
+        "--split-first-layer",
+        action="store_true",
+        help="PyTorch also splits the first message layer as dispgns does (same FLOPs)",
+    )
+    parser.add_argument(
+        "--matmul-dtype",
+        default="float32",
+        choices=("float32", "bfloat16"),
+        help="dispgns' ModelConfig.matmul_dtype (PyTorch stays float32)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(len(os.sched_getaffinity(0)))
     torch.manual_seed(0)
@@ -162,8 +176,9 @@ def main():
 
     # dispgns: the step and inputs of benchmarks/gnn.py.
     model_config, train_config = ModelConfig(matmul_dtype=args.matmul_dtype), TrainConfig()
-    state = create_train_state(jax.random.key(0), model_config, train_config,
-                               compute_normalization(trajs, noise_std=train_config.noise_std))
+    state = create_train_state(
+        jax.random.key(0), model_config, train_config, compute_normalization(trajs, noise_std=train_config.noise_std)
+    )
     stream = BatchStream(trajs, input_sequence_length=C, batch_size=2, connectivity_radius=RADIUS_GRAPH, seed=0)
     late = np.flatnonzero(stream.index.start >= stream.index.start.max() - 4)
     ids = [late[0], late[-1]]
@@ -171,20 +186,30 @@ def main():
     key = jax.random.key(0)
     compiled = train_step.lower(state, batch, key).compile()
     starts = stream.index.start[ids]
-    windows = [torch.tensor(np.asarray(t.position[s:s + C + 1])) for t, s in zip(
-        [trajs[int(stream.index.trajectory[i])] for i in ids], starts)]
+    windows = [
+        torch.tensor(np.asarray(t.position[s : s + C + 1]))
+        for t, s in zip([trajs[int(stream.index.trajectory[i])] for i in ids], starts)
+    ]
     radii = [torch.tensor(np.asarray(trajs[int(stream.index.trajectory[i])].radius)) for i in ids]
     edges_torch = [int(features(w[:C], a)[2].shape[0]) for w, a in zip(windows, radii)]
 
     traj = trajs[0]
     start = traj.position.shape[0] - 6
-    jwindow = jnp.asarray(traj.position[start - 100:start - 94])
+    jwindow = jnp.asarray(traj.position[start - 100 : start - 94])
     jradius = jnp.asarray(traj.radius)
     mask = jnp.ones(jradius.shape, bool)
-    capacity = capacity_for(traj.position[start - 100:], connectivity_radius=RADIUS_GRAPH, margin=0.05)
+    capacity = capacity_for(traj.position[start - 100 :], connectivity_radius=RADIUS_GRAPH, margin=0.05)
     chunk_steps = 20
-    chunk = lambda: _rollout_chunk(state.params, jwindow, jradius, mask, jnp.int32(chunk_steps), length=chunk_steps,
-                                   capacity=capacity, model_config=model_config)
+    chunk = lambda: _rollout_chunk(
+        state.params,
+        jwindow,
+        jradius,
+        mask,
+        jnp.int32(chunk_steps),
+        length=chunk_steps,
+        capacity=capacity,
+        model_config=model_config,
+    )
     twindow, tradius = torch.tensor(np.asarray(jwindow)), torch.tensor(np.asarray(jradius))
 
     def torch_rollout(steps):
@@ -202,10 +227,12 @@ def main():
 
     per = 3
     work = {
-        "torch_train": lambda: np.median([timed(lambda: torch_train_step(net, opt, windows, radii, generator))
-                                          for _ in range(per)]),
-        "dispgns_train": lambda: np.median([timed(lambda: jax.block_until_ready(compiled(state, batch, key)))
-                                            for _ in range(per)]),
+        "torch_train": lambda: np.median(
+            [timed(lambda: torch_train_step(net, opt, windows, radii, generator)) for _ in range(per)]
+        ),
+        "dispgns_train": lambda: np.median(
+            [timed(lambda: jax.block_until_ready(compiled(state, batch, key))) for _ in range(per)]
+        ),
         "torch_rollout": lambda: timed(lambda: torch_rollout(chunk_steps)) / chunk_steps,
         "dispgns_rollout": lambda: timed(lambda: jax.block_until_ready(chunk())) / chunk_steps,
     }
@@ -213,11 +240,14 @@ def main():
     order = list(work)
     for r in range(args.rounds):
         # Who goes first alternates, so neither always runs right after the other.
-        for name in (order if r % 2 == 0 else order[1::-1] + order[:1:-1]):
+        for name in order if r % 2 == 0 else order[1::-1] + order[:1:-1]:
             times[name].append(work[name]())
     ms = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
-    print(f"training step: PyTorch {ms['torch_train']:.1f} ms, dispgns {ms['dispgns_train']:.1f} ms; "
-          f"rollout step: PyTorch {ms['torch_rollout']:.1f} ms, dispgns {ms['dispgns_rollout']:.1f} ms", flush=True)
+    print(
+        f"training step: PyTorch {ms['torch_train']:.1f} ms, dispgns {ms['dispgns_train']:.1f} ms; "
+        f"rollout step: PyTorch {ms['torch_rollout']:.1f} ms, dispgns {ms['dispgns_rollout']:.1f} ms",
+        flush=True,
+    )
     report = {
         "machine": {**machine_info(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()},
         "torch_parameters": n_params,

@@ -43,8 +43,11 @@ def main(argv=None) -> int:
     log = [json.loads(line) for line in (args.run / "log.jsonl").read_text().splitlines() if line.strip()]
     record = dict(info.get("record", {}))
     record["purpose"] = "timing fixture of benchmarks/gnn.py (see benchmarks/paper_network.py)"
-    record["validation_log"] = [[r["step"], r.get("valid_rollout_mse"), r.get("valid_one_step_loss")]
-                                for r in log if r.get("kind") == "validation"]
+    record["validation_log"] = [
+        [r["step"], r.get("valid_rollout_mse"), r.get("valid_one_step_loss")]
+        for r in log
+        if r.get("kind") == "validation"
+    ]
     export_model(args.out, params, model_config, record)
     print(f"wrote {args.out} from {info['source']}")
     return 0

@@ -17,7 +17,6 @@ Usage: python benchmarks/simulate.py [--quick] [--skip-dataset]
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -64,8 +63,9 @@ def median_seconds(run, repeats: int) -> float:
 
 
 def paper_state(n: int, seed: int = 0):
-    return sample_initial_state(jax.random.PRNGKey(seed), UNSEEN_RADII, PhysicsConfig(), n_particles=n,
-                                start_height=-0.025, max_rounds=256)
+    return sample_initial_state(
+        jax.random.PRNGKey(seed), UNSEEN_RADII, PhysicsConfig(), n_particles=n, start_height=-0.025, max_rounds=256
+    )
 
 
 def euler_step_ms(repeats: int, frames: int) -> float:
@@ -133,14 +133,28 @@ def particle_step_ns(sizes, repeats: int, frames: int) -> dict:
             simulate(position, velocity, radius, config, n_frames=frames + 1, save_every=15).block_until_ready()
 
         seconds = median_seconds(run, repeats)
-        results[n] = {"ns": 1e9 * seconds / (frames * 15 * n), "steps_per_s": frames * 15 / seconds, "box_half_size_m": half}
+        results[n] = {
+            "ns": 1e9 * seconds / (frames * 15 * n),
+            "steps_per_s": frames * 15 / seconds,
+            "box_half_size_m": half,
+        }
     return results
 
 
 def paper_dataset_seconds() -> float | None:
     with tempfile.TemporaryDirectory() as tmp:
-        command = [sys.executable, "-m", "dispgns", "generate", "--preset", "paper", "--seed", "0", "--out",
-                   str(Path(tmp) / "paper")]
+        command = [
+            sys.executable,
+            "-m",
+            "dispgns",
+            "generate",
+            "--preset",
+            "paper",
+            "--seed",
+            "0",
+            "--out",
+            str(Path(tmp) / "paper"),
+        ]
         start = time.perf_counter()
         done = subprocess.run(command, capture_output=True, text=True)
         elapsed = time.perf_counter() - start
@@ -172,8 +186,12 @@ def main():
     print(json.dumps({"particle_step_ns": summary["particle_step_ns"]}))
     if not args.skip_dataset:
         summary["paper_dataset_s"] = paper_dataset_seconds()
-    summary["targets"] = {"euler_step_ms": 0.1, "paper_dataset_s": 60, "particle_step_ns_max_over_min": 2.0,
-                          "euler_steps_per_s_at_100000": 20}
+    summary["targets"] = {
+        "euler_step_ms": 0.1,
+        "paper_dataset_s": 60,
+        "particle_step_ns_max_over_min": 2.0,
+        "euler_steps_per_s_at_100000": 20,
+    }
     print(json.dumps(summary))
 
 

@@ -24,8 +24,9 @@ HERE = Path(__file__).parent
 def execute(path: Path) -> None:
     notebook = nbformat.read(path, as_version=4)
     with tempfile.TemporaryDirectory() as workdir:
-        client = NotebookClient(notebook, timeout=1800, kernel_name="python3",
-                                resources={"metadata": {"path": workdir}})
+        client = NotebookClient(
+            notebook, timeout=1800, kernel_name="python3", resources={"metadata": {"path": workdir}}
+        )
         client.execute()
     temporary = path.with_name(path.name + ".tmp")
     nbformat.write(notebook, temporary)

@@ -27,7 +27,7 @@ def make_trajectory(seed=0, n_frames=5, n=4, dim=2, initial=True):
     rng = np.random.default_rng(seed)
     x0 = rng.uniform(-0.08, 0.08, (n, dim))
     radius_m = rng.choice([0.002, 0.003, 0.005], n)
-    position = (x0[None] / L + rng.normal(0, 1e-3, (n_frames, n, dim)) * np.arange(n_frames)[:, None, None])
+    position = x0[None] / L + rng.normal(0, 1e-3, (n_frames, n, dim)) * np.arange(n_frames)[:, None, None]
     kwargs = {}
     if initial:
         kwargs = dict(initial_position=x0, initial_velocity=rng.normal(0, 0.01, (n, dim)), initial_radius=radius_m)
@@ -43,10 +43,18 @@ def make_trajectory(seed=0, n_frames=5, n=4, dim=2, initial=True):
 def make_metadata(counts=None, n_frames=5, particles=None, **overrides):
     counts = counts or {"train": 2, "valid": 1}
     values = dict(
-        dim=2, sequence_length=n_frames, frame_dt=15 * 1e-4, save_every=15, box_half_size=L,
-        connectivity_radius=0.2, trajectory_counts=counts,
+        dim=2,
+        sequence_length=n_frames,
+        frame_dt=15 * 1e-4,
+        save_every=15,
+        box_half_size=L,
+        connectivity_radius=0.2,
+        trajectory_counts=counts,
         radii={s: fmt.radii_groups([(c, [0.002, 0.003, 0.005])]) for s, c in counts.items()},
-        physics=PhysicsConfig().to_dict(), seed=3, precision="float32", particle_counts=particles,
+        physics=PhysicsConfig().to_dict(),
+        seed=3,
+        precision="float32",
+        particle_counts=particles,
     )
     values.update(overrides)
     return DatasetMetadata(**values)
@@ -127,12 +135,21 @@ def _clean(path, trajectory, field):
         ("radius", lambda r: r[:, None], r"'radius' has shape \(6, 1\), expected \(6,\)"),
         ("position", lambda p: p.astype(np.float64), r"'position' has dtype float64, expected float32"),
         ("position", lambda p: p[:, :, :1], r"'position' has shape \(5, 6, 1\), expected \(5, \?, 2\)"),
-        ("position", lambda p: np.where(np.arange(p.size).reshape(p.shape) == 7, np.nan, p).astype(np.float32),
-         r"'position' has a non-finite value nan at index \(0, 3, 1\)"),
-        ("position", lambda p: np.where(np.arange(p.size).reshape(p.shape) == 13, 1.5, p).astype(np.float32),
-         r"'position' frame 1 particle 0 axis 1 is 1.5, expected inside the box \[-1, 1\]"),
-        ("radius", lambda r: np.where(np.arange(r.size) == 2, 0.0, r).astype(np.float32),
-         r"'radius' of particle 2 is 0, expected 0 < radius / L < 1"),
+        (
+            "position",
+            lambda p: np.where(np.arange(p.size).reshape(p.shape) == 7, np.nan, p).astype(np.float32),
+            r"'position' has a non-finite value nan at index \(0, 3, 1\)",
+        ),
+        (
+            "position",
+            lambda p: np.where(np.arange(p.size).reshape(p.shape) == 13, 1.5, p).astype(np.float32),
+            r"'position' frame 1 particle 0 axis 1 is 1.5, expected inside the box \[-1, 1\]",
+        ),
+        (
+            "radius",
+            lambda r: np.where(np.arange(r.size) == 2, 0.0, r).astype(np.float32),
+            r"'radius' of particle 2 is 0, expected 0 < radius / L < 1",
+        ),
         ("radius", lambda r: -r, r"'radius' of particle 0 is -0\.\d+, expected 0 < radius / L < 1"),
         ("radius", lambda r: r.astype(np.float16), r"'radius' has dtype float16, expected float32"),
         ("particle_type", lambda t: t.astype(np.float32), r"'particle_type' has dtype float32, expected an integer"),
@@ -170,10 +187,14 @@ def test_missing_initial_state_is_fine_without_the_metadata_flag(dataset):
     [
         (dict(n_frames=7), r"train\.h5: trajectory 00000: 'position' has shape \(5, 4, 2\), expected \(7, \?, 2\)"),
         (dict(counts={"train": 3, "valid": 1}), r"train\.h5: holds 2 trajectories, expected 3 \(metadata.json\)"),
-        (dict(particles={"train": [4, 7], "valid": [5]}),
-         r"train\.h5: trajectory 00001: 'position' holds 6 particles, expected 7"),
-        (dict(box_half_size=0.05, physics=PhysicsConfig(box_half_size=0.05).to_dict()),
-         r"train\.h5: trajectory 00000: 'initial_position'"),
+        (
+            dict(particles={"train": [4, 7], "valid": [5]}),
+            r"train\.h5: trajectory 00001: 'position' holds 6 particles, expected 7",
+        ),
+        (
+            dict(box_half_size=0.05, physics=PhysicsConfig(box_half_size=0.05).to_dict()),
+            r"train\.h5: trajectory 00000: 'initial_position'",
+        ),
     ],
 )
 def test_read_rejects_metadata_mismatch(dataset, overrides, message):
@@ -187,8 +208,11 @@ def test_metadata_dim_mismatch(dataset):
     directory, _ = dataset
     metadata = make_metadata(dim=3)
     write_metadata(directory, metadata)
-    with pytest.raises(DatasetError, match=r"train\.h5: trajectory 00000: 'position' has shape \(5, 4, 2\), "
-                                           r"expected \(5, \?, 3\)"):
+    with pytest.raises(
+        DatasetError,
+        match=r"train\.h5: trajectory 00000: 'position' has shape \(5, 4, 2\), "
+        r"expected \(5, \?, 3\)",
+    ):
         load_dataset(directory)
 
 
@@ -216,8 +240,10 @@ def test_trajectory_groups_must_be_numbered(dataset):
         (lambda d: d.update(colour="red"), r"unknown field\(s\) \['colour'\]"),
         (lambda d: d.update(dim=4), r"'dim' is 4, expected 2 or 3"),
         (lambda d: d.update(frame_dt=1.0), r"'frame_dt' is 1.0, expected save_every \* physics.dt"),
-        (lambda d: d["trajectory_counts"].update(train=5),
-         r"'radii'\['train'\] groups hold 2 trajectories, expected 5"),
+        (
+            lambda d: d["trajectory_counts"].update(train=5),
+            r"'radii'\['train'\] groups hold 2 trajectories, expected 5",
+        ),
         (lambda d: d["physics"].update(density=-1.0), r"'physics' is not a valid PhysicsConfig"),
         (lambda d: d.update(format_version=99), r"'format_version' is 99, expected 1"),
         (lambda d: d.update(seed="abc"), r"'seed' is 'abc', expected null or an integer"),

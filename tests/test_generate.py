@@ -87,8 +87,12 @@ def test_spec_replace():
 
 
 def test_trajectory_keys_are_independent():
-    keys = {(seed, split, index): tuple(np.asarray(jax.random.key_data(trajectory_key(seed, split, index))))
-            for seed in (0, 1) for split in ("train", "valid", "test", "test_unseen") for index in range(3)}
+    keys = {
+        (seed, split, index): tuple(np.asarray(jax.random.key_data(trajectory_key(seed, split, index))))
+        for seed in (0, 1)
+        for split in ("train", "valid", "test", "test_unseen")
+        for index in range(3)
+    }
     assert len(set(keys.values())) == len(keys)
     # A split's trajectories do not depend on the counts of the others.
     small = tiny_spec().replace(counts={"train": 0, "valid": 0, "test_unseen": 0, "test": 1}).items()
@@ -124,8 +128,9 @@ def test_generated_dataset_and_metadata(tiny):
     assert read.connectivity_radius == pytest.approx(4 * 0.010 / 0.1)
     assert read.physics_config == PhysicsConfig()
     assert read.has_initial_state and read.seed == 0 and read.preset == "tiny" and read.precision == "float32"
-    assert read.radii["test_unseen"] == [{"count": 1, "radii_m": [0.0045, 0.0055, 0.007, 0.009],
-                                           "radii_mm": [4.5, 5.5, 7.0, 9.0]}]
+    assert read.radii["test_unseen"] == [
+        {"count": 1, "radii_m": [0.0045, 0.0055, 0.007, 0.009], "radii_mm": [4.5, 5.5, 7.0, 9.0]}
+    ]
     for split, trajectories in splits.items():
         assert [t.n_particles for t in trajectories] == read.particle_counts[split]
         allowed = read.radii[split][0]["radii_m"]
@@ -145,10 +150,14 @@ def test_positions_match_a_rerun_from_the_stored_initial_state(tiny):
     out, metadata = tiny
     _, splits = load_dataset(out, splits=["train", "test_unseen"])
     for trajectory in (splits["train"][0], splits["test_unseen"][0]):
-        frames = simulate(trajectory.initial_position.astype(np.float32),
-                          trajectory.initial_velocity.astype(np.float32),
-                          trajectory.initial_radius.astype(np.float32), metadata.physics_config,
-                          n_frames=metadata.sequence_length, save_every=metadata.save_every)
+        frames = simulate(
+            trajectory.initial_position.astype(np.float32),
+            trajectory.initial_velocity.astype(np.float32),
+            trajectory.initial_radius.astype(np.float32),
+            metadata.physics_config,
+            n_frames=metadata.sequence_length,
+            save_every=metadata.save_every,
+        )
         np.testing.assert_allclose(np.asarray(frames) / metadata.box_half_size, trajectory.position, atol=1e-5)
 
 
@@ -166,8 +175,9 @@ def test_concurrent_batches_match_one_batch(tiny, tmp_path):
 
 def _read_all(directory):
     metadata, splits = load_dataset(directory)
-    return metadata, {s: [(t.position, t.initial_position, t.initial_velocity, t.radius) for t in ts]
-                      for s, ts in splits.items()}
+    return metadata, {
+        s: [(t.position, t.initial_position, t.initial_velocity, t.radius) for t in ts] for s, ts in splits.items()
+    }
 
 
 def test_same_seed_same_dataset_and_different_seed_differs(tiny, tmp_path):
@@ -228,8 +238,9 @@ def test_batches_keep_trajectories_in_order(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch(calls))
     progress = []
-    metadata = generate_dataset(tiny_spec(), tmp_path / "out", seed=0, batch_size=2,
-                                progress=lambda *event: progress.append(event))
+    metadata = generate_dataset(
+        tiny_spec(), tmp_path / "out", seed=0, batch_size=2, progress=lambda *event: progress.append(event)
+    )
     assert sorted(shape[0] for shape in calls) == [1, 2, 2]
     assert progress[0] == ("place", 1, 5) and ("place", 5, 5) in progress
     assert progress[-1] == ("simulate", 60, 60)
@@ -254,8 +265,10 @@ def test_plan_batches():
     assert [max(shuffled[i] for i in g) for g in one_lane] == [181, 240]
 
     def wall(plan, lanes):
-        costs = [gen._SECONDS_PER_COMPILE
-                 + gen._SECONDS_PER_PAIR_STEP * 7500 * len(g) * max(shuffled[i] for i in g) ** 2 for g in plan]
+        costs = [
+            gen._SECONDS_PER_COMPILE + gen._SECONDS_PER_PAIR_STEP * 7500 * len(g) * max(shuffled[i] for i in g) ** 2
+            for g in plan
+        ]
         return gen._makespan(costs, lanes)
 
     assert wall(groups, 2) < wall(one_lane, 2) < wall([list(range(40))], 2)
@@ -275,8 +288,7 @@ def test_worker_threads_keep_float64(tmp_path, monkeypatch):
 
     monkeypatch.setattr(gen, "simulate_batch", recording)
     with jax.enable_x64(True):
-        metadata = generate_dataset(tiny_spec().replace(precision="float64"), tmp_path / "out", seed=0,
-                                    batch_size=2)
+        metadata = generate_dataset(tiny_spec().replace(precision="float64"), tmp_path / "out", seed=0, batch_size=2)
     assert metadata.precision == "float64"
     assert seen == [(True, np.float64)] * 3
 
@@ -333,9 +345,31 @@ def test_cli_generate(tiny, tmp_path, capsys):
 def test_cli_generate_options(tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "simulate_batch", fake_simulate_batch())
     out = tmp_path / "custom"
-    code = main(["generate", "--preset", "paper", "--out", str(out), "--frames", "9", "--train-count", "2",
-                 "--valid-count", "0", "--test-count", "1", "--unseen-count", "3", "--radii", "4,6,8,10",
-                 "--unseen-radii", "3,5", "--unseen-radii", "4,6,9"])
+    code = main(
+        [
+            "generate",
+            "--preset",
+            "paper",
+            "--out",
+            str(out),
+            "--frames",
+            "9",
+            "--train-count",
+            "2",
+            "--valid-count",
+            "0",
+            "--test-count",
+            "1",
+            "--unseen-count",
+            "3",
+            "--radii",
+            "4,6,8,10",
+            "--unseen-radii",
+            "3,5",
+            "--unseen-radii",
+            "4,6,9",
+        ]
+    )
     assert code == 0
     metadata, splits = load_dataset(out)
     assert metadata.trajectory_counts == {"train": 2, "test": 1, "test_unseen": 3}
@@ -383,8 +417,26 @@ def test_cli_generate_refuses_occupied_or_unwritable_targets(tmp_path, capsys, m
 
 def test_cli_generate_x64_is_scoped(tmp_path):
     out = tmp_path / "f64"
-    code = main(["generate", "--preset", "tiny", "--out", str(out), "--x64", "--frames", "3", "--train-count", "1",
-                 "--valid-count", "0", "--test-count", "0", "--unseen-count", "0"])
+    code = main(
+        [
+            "generate",
+            "--preset",
+            "tiny",
+            "--out",
+            str(out),
+            "--x64",
+            "--frames",
+            "3",
+            "--train-count",
+            "1",
+            "--valid-count",
+            "0",
+            "--test-count",
+            "0",
+            "--unseen-count",
+            "0",
+        ]
+    )
     assert code == 0
     assert not jax.config.jax_enable_x64
     metadata, splits = load_dataset(out)
@@ -404,8 +456,9 @@ def test_dataset_error_is_a_value_error():
 def test_cli_rejects_unusable_radii_before_writing(tmp_path, capsys):
     base = ["generate", "--preset", "tiny", "--frames", "2", "--valid-count", "0", "--test-count", "0"]
     out = tmp_path / "a"
-    assert main(base + ["--out", str(out), "--unseen-count", "1", "--unseen-radii", "3,4",
-                        "--unseen-radii", "5,6"]) == 2
+    assert (
+        main(base + ["--out", str(out), "--unseen-count", "1", "--unseen-radii", "3,4", "--unseen-radii", "5,6"]) == 2
+    )
     assert "every group needs at least one" in capsys.readouterr().err
     assert main(base + ["--out", str(out), "--unseen-count", "0", "--radii", "0.001"]) == 2
     assert "particle indices can address" in capsys.readouterr().err

@@ -47,8 +47,11 @@ def test_sizes():
 def test_features_match_reference_float64(ref):
     with jax.enable_x64(True):
         nodes, edges, senders, receivers = F.graph_features(
-            jnp.asarray(ref["positions"], jnp.float64), jnp.asarray(ref["radius"], jnp.float64),
-            connectivity_radius=float(ref["connectivity_radius"]), boundary_clip=float(ref["clip"]))
+            jnp.asarray(ref["positions"], jnp.float64),
+            jnp.asarray(ref["radius"], jnp.float64),
+            connectivity_radius=float(ref["connectivity_radius"]),
+            boundary_clip=float(ref["clip"]),
+        )
         assert nodes.dtype == jnp.float64 and edges.dtype == jnp.float64
         np.testing.assert_array_equal(np.asarray(senders), ref["senders"])
         np.testing.assert_array_equal(np.asarray(receivers), ref["receivers"])
@@ -58,7 +61,8 @@ def test_features_match_reference_float64(ref):
 
 def test_features_match_reference_float32(ref):
     nodes, edges, senders, receivers = F.graph_features(
-        jnp.asarray(ref["positions"], jnp.float32), jnp.asarray(ref["radius"], jnp.float32), connectivity_radius=0.2)
+        jnp.asarray(ref["positions"], jnp.float32), jnp.asarray(ref["radius"], jnp.float32), connectivity_radius=0.2
+    )
     assert nodes.dtype == jnp.float32
     assert nodes.shape == (150, 15) and edges.shape == (1562, 14)
     np.testing.assert_array_equal(np.asarray(senders), ref["senders"])
@@ -149,11 +153,13 @@ def test_default_candidate_search_falls_back_to_all_pairs_where_no_cell_list_fit
     x = rng.uniform(-1, 1, (6, 200, 2)).astype(np.float32)
     radius = np.full(200, 0.02, np.float32)
     # A radius so large that the grid has fewer than 3 cells per side, and a 1-D system.
-    assert not G.cell_list_possible(2, connectivity_radius=2.5) and not G.cell_list_possible(1, connectivity_radius=0.05)
+    assert not G.cell_list_possible(2, connectivity_radius=2.5) and not G.cell_list_possible(
+        1, connectivity_radius=0.05
+    )
     assert G.capacity_for(x[-1], connectivity_radius=2.5).cell is None
     _, _, senders, receivers = F.graph_features(x, radius, connectivity_radius=2.5)
     d2 = ((x[-1, :, None].astype(np.float64) - x[-1, None, :]) ** 2).sum(-1)
-    assert len(senders) == int((d2 < 2.5 ** 2).sum())  # self-loops included
+    assert len(senders) == int((d2 < 2.5**2).sum())  # self-loops included
     line = x[..., :1]
     _, _, senders, receivers = F.graph_features(line, radius, bounds=((-1.0, 1.0),), connectivity_radius=0.05)
     close = np.abs(line[-1, :, 0][:, None] - line[-1, :, 0][None, :]) < 0.05
@@ -163,6 +169,7 @@ def test_default_candidate_search_falls_back_to_all_pairs_where_no_cell_list_fit
 
 def test_capacities_on_the_ladder_are_shared_rungs():
     import math
+
     rungs = set()
     for edges in range(1, 20_000, 7):
         for cell in (None, 4, 9, 13, 31):

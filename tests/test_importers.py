@@ -92,8 +92,10 @@ def _nan(entry):
     "entry, message",
     [
         (_bad(_nan), r"positions have a non-finite value at index \(3, 2, 0\)"),
-        (_bad(lambda e: e.__setitem__(0, e[0] * 20)),
-         r"position of particle 0 at frame 0, axis 0 is 4.93062, expected inside the normalised box \[-1, 1\]"),
+        (
+            _bad(lambda e: e.__setitem__(0, e[0] * 20)),
+            r"position of particle 0 at frame 0, axis 0 is 4.93062, expected inside the normalised box \[-1, 1\]",
+        ),
         (_bad(lambda e: e.__setitem__(1, e[1][:4])), r"radii have shape \(4,\), expected \(5,\)"),
         (_bad(lambda e: e.__setitem__(1, -e[1])), r"radius of particle 0 is -0\.\d+, expected 0 < radius / L < 1"),
         (_bad(lambda e: e.__setitem__(0, e[0][0])), r"positions have shape \(5, 2\), expected \(T, N, 2\)"),

@@ -39,12 +39,23 @@ def _offset_after_inputs(traj, offset):
 # position errors
 # ---------------------------------------------------------------------------
 
+
 def test_identical_trajectories_give_zero_errors():
     truth, radius = _random_walk()
     m = M.rollout_metrics(truth, truth, radius, box_half_size=L, input_frames=C)
-    for key in ("mse", "rmse_mm", "rmse_diameters", "mse_times_L_mm", "mse_h1", "mse_h10", "mse_hfull",
-                "kinetic_energy_mean_abs_relative_error", "kinetic_energy_total_relative_error",
-                "mean_height_mean_abs_error", "mean_height_final_error"):
+    for key in (
+        "mse",
+        "rmse_mm",
+        "rmse_diameters",
+        "mse_times_L_mm",
+        "mse_h1",
+        "mse_h10",
+        "mse_hfull",
+        "kinetic_energy_mean_abs_relative_error",
+        "kinetic_energy_total_relative_error",
+        "mean_height_mean_abs_error",
+        "mean_height_final_error",
+    ):
         assert m[key] == 0.0, key
     assert m["per_frame_mse"] == [0.0] * (truth.shape[0] - C)
     assert m["wall_violations_total"] == 0
@@ -55,8 +66,7 @@ def test_identical_trajectories_give_zero_errors():
 def test_constant_offset_gives_delta_squared_and_unit_conversions():
     truth, radius = _random_walk()
     delta = 0.01
-    m = M.rollout_metrics(_offset_after_inputs(truth, [delta, delta]), truth, radius, box_half_size=L,
-                          input_frames=C)
+    m = M.rollout_metrics(_offset_after_inputs(truth, [delta, delta]), truth, radius, box_half_size=L, input_frames=C)
     assert m["mse"] == pytest.approx(delta**2, rel=1e-5)
     assert m["per_frame_mse"] == pytest.approx([delta**2] * (truth.shape[0] - C), rel=1e-5)
     assert m["rmse_mm"] == pytest.approx(delta * L * 1e3, rel=1e-5)  # 1 mm
@@ -64,8 +74,7 @@ def test_constant_offset_gives_delta_squared_and_unit_conversions():
     # The paper's "mm" number multiplies the MSE by L: 1e-4 * 0.1 m = 1e-5 m = 0.01 mm.
     assert m["mse_times_L_mm"] == pytest.approx(delta**2 * L * 1e3, rel=1e-5)
     # An offset on one axis only: the mean runs over both axes.
-    m_x = M.rollout_metrics(_offset_after_inputs(truth, [delta, 0.0]), truth, radius, box_half_size=L,
-                            input_frames=C)
+    m_x = M.rollout_metrics(_offset_after_inputs(truth, [delta, 0.0]), truth, radius, box_half_size=L, input_frames=C)
     assert m_x["mse"] == pytest.approx(delta**2 / 2, rel=1e-5)
     # The paper's example: MSE 6.6e-4 is an RMSE of 2.6 mm.
     assert float(M.rmse_mm(6.6e-4, 0.1)) == pytest.approx(2.569, abs=1e-3)
@@ -91,8 +100,13 @@ def test_horizons_slice_the_first_predicted_frames():
     assert float(M.rollout_mse(prediction, truth, input_frames=C, horizon=10)) == pytest.approx(5.5e-6, rel=2e-4)
     with pytest.raises(ValueError, match="horizon"):
         M.rollout_mse(prediction, truth, input_frames=C, horizon=61)
-    assert M.horizon_mse([1.0, 2.0, 3.0], horizons=(1, 2, 3, 4)) == {"1": 1.0, "2": 1.5, "3": 2.0, "4": None,
-                                                                     "full": 2.0}
+    assert M.horizon_mse([1.0, 2.0, 3.0], horizons=(1, 2, 3, 4)) == {
+        "1": 1.0,
+        "2": 1.5,
+        "3": 2.0,
+        "4": None,
+        "full": 2.0,
+    }
 
 
 def test_padding_never_counts():
@@ -109,8 +123,9 @@ def test_padding_never_counts():
     mask = np.arange(8 + pad) < 8
     reference = M.rollout_metrics(prediction, truth, radius, box_half_size=L, input_frames=C)
     for fill in (np.nan, 5.0, 0.0):
-        got = M.rollout_metrics(padded(prediction, fill), padded(truth, -fill), radius_padded, box_half_size=L,
-                                input_frames=C, mask=mask)
+        got = M.rollout_metrics(
+            padded(prediction, fill), padded(truth, -fill), radius_padded, box_half_size=L, input_frames=C, mask=mask
+        )
         assert got.keys() == reference.keys()
         for key, value in reference.items():
             if value is None or isinstance(value, bool):
@@ -136,16 +151,20 @@ def test_shape_errors_are_clear():
 # physical plausibility
 # ---------------------------------------------------------------------------
 
+
 def test_wall_pokes_counted_exactly():
     radius = np.array([0.05, 0.05, 0.05, 0.04, 0.05], np.float32)
     contact = 1.0 - 0.05
-    frame0 = np.array([
-        [contact + 0.2 * 0.05, 0.0],   # 20 % of its radius through the right wall: counted
-        [0.0, -contact - 0.05 * 0.05],  # 5 % through the bottom: within tolerance
-        [contact + 0.5 * 0.05, contact + 0.5 * 0.05],  # through a corner: counted once
-        [0.0, 0.0],
-        [-2.0, 0.0],                    # padding, far outside
-    ], np.float32)
+    frame0 = np.array(
+        [
+            [contact + 0.2 * 0.05, 0.0],  # 20 % of its radius through the right wall: counted
+            [0.0, -contact - 0.05 * 0.05],  # 5 % through the bottom: within tolerance
+            [contact + 0.5 * 0.05, contact + 0.5 * 0.05],  # through a corner: counted once
+            [0.0, 0.0],
+            [-2.0, 0.0],  # padding, far outside
+        ],
+        np.float32,
+    )
     frame1 = np.zeros_like(frame0)
     frame1[:, 0] = np.linspace(-0.5, 0.5, 5)
     positions = np.stack([frame0, frame1])
@@ -158,11 +177,16 @@ def test_wall_pokes_counted_exactly():
 def test_overlaps_counted_exactly():
     radius = np.array([0.02, 0.04, 0.02, 0.03, 0.05], np.float32)
     # r_m = 1.75 min(a_i, a_j): 0.035 for pairs (0, 1), (2, 3).
-    frame0 = np.array([
-        [0.0, 0.0], [0.033, 0.0],      # 0.033 < 0.035: overlap
-        [0.5, 0.5], [0.5, 0.537],      # 0.037 > 0.035, though closer than a_2 + a_3: no overlap
-        [0.01, 0.0],                   # padding on top of particle 0: ignored
-    ], np.float32)
+    frame0 = np.array(
+        [
+            [0.0, 0.0],
+            [0.033, 0.0],  # 0.033 < 0.035: overlap
+            [0.5, 0.5],
+            [0.5, 0.537],  # 0.037 > 0.035, though closer than a_2 + a_3: no overlap
+            [0.01, 0.0],  # padding on top of particle 0: ignored
+        ],
+        np.float32,
+    )
     frame1 = np.array([[0.0, 0.0], [0.0, 0.02], [0.0, -0.02], [-0.6, -0.6], [0.9, 0.9]], np.float32)
     positions = np.stack([frame0, frame1])
     mask = np.array([True, True, True, True, False])
@@ -205,6 +229,7 @@ def test_mean_height_error():
 # ---------------------------------------------------------------------------
 # baselines
 # ---------------------------------------------------------------------------
+
 
 def test_constant_velocity_is_exact_on_uniform_motion():
     truth, radius = _random_walk(t=30)
@@ -249,6 +274,7 @@ def test_array_functions_jit_and_vmap():
 # reports
 # ---------------------------------------------------------------------------
 
+
 def test_rollout_metrics_is_json_ready_and_summarize_gives_mean_std():
     truth, radius = _random_walk(t=20)
     metrics = [
@@ -290,6 +316,7 @@ def test_non_finite_prediction_is_reported_not_hidden():
 # chaos floor
 # ---------------------------------------------------------------------------
 
+
 def _small_system():
     data = np.load(DATA / "sedimentation.npz")
     return data["x0"][:10], data["v0"][:10], data["radius"][:10]
@@ -298,8 +325,7 @@ def _small_system():
 def test_chaos_floor_without_perturbation_is_the_simulation():
     x0, v0, radius = _small_system()
     config = PhysicsConfig()
-    floor = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(0), n_frames=20,
-                                  perturbation=0.0)
+    floor = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(0), n_frames=20, perturbation=0.0)
     with jax.enable_x64(True):
         exact = np.asarray(simulate(jnp.asarray(x0), jnp.asarray(v0), jnp.asarray(radius), config, n_frames=20))
     assert floor.dtype == np.float64 and floor.shape == (20, 10, 2)
@@ -317,8 +343,14 @@ def test_chaos_floor_stays_close_for_a_few_frames():
     assert 0 < start.max() < 5e-6  # a 1e-6 L normal shift per coordinate
     drift = np.abs(floor - truth).max(axis=(1, 2))
     assert np.all(drift[:5] < 1e-4), drift
-    m = M.rollout_metrics(truth, truth, radius / config.box_half_size, box_half_size=config.box_half_size,
-                          input_frames=C, chaos_floor=floor)
+    m = M.rollout_metrics(
+        truth,
+        truth,
+        radius / config.box_half_size,
+        box_half_size=config.box_half_size,
+        input_frames=C,
+        chaos_floor=floor,
+    )
     assert 0 < m["chaos_floor_mse"] < 1e-8
     assert len(m["chaos_floor_per_frame_mse"]) == 20 - C
     # Padding particles are not perturbed (the physics tests show they never touch real ones).

@@ -29,8 +29,12 @@ def inputs():
 
 @pytest.fixture(scope="module")
 def params():
-    norm = {"velocity_mean": jnp.array([0.01, -0.02]), "velocity_std": jnp.array([0.05, 0.08]),
-            "acceleration_mean": jnp.array([0.0, -0.001]), "acceleration_std": jnp.array([0.01, 0.02])}
+    norm = {
+        "velocity_mean": jnp.array([0.01, -0.02]),
+        "velocity_std": jnp.array([0.05, 0.08]),
+        "acceleration_mean": jnp.array([0.0, -0.001]),
+        "acceleration_std": jnp.array([0.01, 0.02]),
+    }
     return init_params(jax.random.key(0), TINY, norm)
 
 
@@ -80,8 +84,7 @@ def test_permutation_equivariance(params, inputs):
 def test_translation_invariance(params, inputs):
     x, a = inputs
     shift = jnp.array([0.25, -0.5], jnp.float32)
-    shifted = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2,
-                          bounds=((-0.75, 1.25), (-1.5, 0.5)))
+    shifted = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, bounds=((-0.75, 1.25), (-1.5, 0.5)))
     base = _acc(params, x, a)
     moved = _acc(params, x + shift, a, config=shifted)
     np.testing.assert_allclose(np.asarray(moved), np.asarray(base), rtol=1e-4, atol=1e-7)
@@ -138,14 +141,20 @@ def test_layer_norm_matches_flax():
     from dispgns.model import LayerNorm
 
     x = jax.random.normal(jax.random.key(0), (30, 16)) * 3 + 1
-    variables = {"params": {"scale": jax.random.normal(jax.random.key(1), (16,)),
-                            "bias": jax.random.normal(jax.random.key(2), (16,))}}
+    variables = {
+        "params": {
+            "scale": jax.random.normal(jax.random.key(1), (16,)),
+            "bias": jax.random.normal(jax.random.key(2), (16,)),
+        }
+    }
     w = jax.random.normal(jax.random.key(3), (30, 16))
     ours = lambda v, x: jnp.sum(LayerNorm(1e-5).apply(v, x) * w)
     flax_ln = lambda v, x: jnp.sum(nn.LayerNorm(epsilon=1e-5).apply(v, x) * w)
     np.testing.assert_allclose(float(ours(variables, x)), float(flax_ln(variables, x)), rtol=1e-5)
-    for a, b in zip(jax.tree_util.tree_leaves(jax.grad(ours, argnums=(0, 1))(variables, x)),
-                    jax.tree_util.tree_leaves(jax.grad(flax_ln, argnums=(0, 1))(variables, x))):
+    for a, b in zip(
+        jax.tree_util.tree_leaves(jax.grad(ours, argnums=(0, 1))(variables, x)),
+        jax.tree_util.tree_leaves(jax.grad(flax_ln, argnums=(0, 1))(variables, x)),
+    ):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
@@ -208,14 +217,21 @@ def test_network_matches_a_plain_reference_implementation(hidden_layers):
     got_grad, want_grad = jax.grad(ours)(net), jax.grad(reference)(net)
     for (path, g), w in zip(jax.tree_util.tree_leaves_with_path(got_grad), jax.tree_util.tree_leaves(want_grad)):
         scale = float(jnp.max(jnp.abs(w))) + 1e-12
-        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-3, atol=1e-4 * scale,
-                                   err_msg=jax.tree_util.keystr(path))
+        np.testing.assert_allclose(
+            np.asarray(g), np.asarray(w), rtol=1e-3, atol=1e-4 * scale, err_msg=jax.tree_util.keystr(path)
+        )
 
 
 def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
     from dispgns.graph import GraphCapacity
-    from dispgns.simulator import (build_graph, merge_graphs, merged_edge_count, network_output, network_output_batch,
-                                   sanitize)
+    from dispgns.simulator import (
+        build_graph,
+        merge_graphs,
+        merged_edge_count,
+        network_output,
+        network_output_batch,
+        sanitize,
+    )
 
     x, a = inputs
     n2 = N - 9
@@ -231,8 +247,12 @@ def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
     @functools.partial(jax.jit, static_argnums=4)
     def both(p, xs, radii, graphs, budget):
         merged = network_output_batch(p, xs, radii, graphs, model_config=TINY, edge_budget=budget)
-        separate = jnp.stack([network_output(p, xs[k], radii[k], jax.tree_util.tree_map(lambda g: g[k], graphs),
-                                             model_config=TINY) for k in range(2)])
+        separate = jnp.stack(
+            [
+                network_output(p, xs[k], radii[k], jax.tree_util.tree_map(lambda g: g[k], graphs), model_config=TINY)
+                for k in range(2)
+            ]
+        )
         return merged, separate
 
     # Without compaction, with a budget that just fits the real edges, and with a generous one.
@@ -265,7 +285,9 @@ def test_bfloat16_matmul_gradient_matches_autodiff(rows):
         f = jax.jit(ours) if jit else ours
         for got, want in zip(f(x, kernel), ref(x, kernel)):
             assert got.dtype == jnp.float32
-            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2e-2, atol=2e-2 * float(jnp.max(jnp.abs(want))))
+            np.testing.assert_allclose(
+                np.asarray(got), np.asarray(want), rtol=2e-2, atol=2e-2 * float(jnp.max(jnp.abs(want)))
+            )
     np.testing.assert_array_equal(np.asarray(_matmul_bf16(x, kernel)), np.asarray(plain(x, kernel)))
 
 

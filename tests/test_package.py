@@ -20,7 +20,9 @@ def test_every_public_name_resolves_and_unknown_names_fail():
 
 
 def test_import_and_cli_help_do_not_load_jax_md():
-    code = ("import sys, dispgns, dispgns.cli; "
-            "assert 'jax_md' not in sys.modules, 'import dispgns loaded jax-md'; "
-            "dispgns.simulate; assert 'jax_md' in sys.modules")
+    code = (
+        "import sys, dispgns, dispgns.cli; "
+        "assert 'jax_md' not in sys.modules, 'import dispgns loaded jax-md'; "
+        "dispgns.simulate; assert 'jax_md' in sys.modules"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import dispgns.physics.integrate as integrate
-from dispgns import PhysicsConfig, euler_integrator, sample_initial_state, simulate, simulate_batch
+from dispgns import PhysicsConfig, sample_initial_state, simulate, simulate_batch
 from dispgns.physics import PlacementError, interaction_force, particle_count_range, particle_mass
 
 CONFIG = PhysicsConfig()
@@ -33,7 +33,7 @@ def test_isolated_particle_follows_the_euler_recurrence():
     steps = np.arange(11) * 10
     np.testing.assert_allclose(np.asarray(v)[:, 0], v0[0] * factor ** steps[:, None], rtol=1e-12)
     # x_n = x_0 + dt v_0 (1 - f^n) / (1 - f): positions use the old velocity.
-    expected_x = config.dt * v0[0] * ((1 - factor ** steps) / (1 - factor))[:, None]
+    expected_x = config.dt * v0[0] * ((1 - factor**steps) / (1 - factor))[:, None]
     np.testing.assert_allclose(np.asarray(x)[:, 0], expected_x, rtol=1e-10, atol=1e-15)
 
 
@@ -109,8 +109,11 @@ def test_float32_all_pair_forces_across_a_wide_packed_bed_stay_within_the_docume
     a, rows = 1e-3, 8
     spacing = 1.98 * a
     cols = int(2 * L / spacing) - 2
-    points = [(-L + a + i * spacing + (j % 2) * spacing / 2, -L + a + j * spacing * np.sqrt(3) / 2)
-              for j in range(rows) for i in range(cols)]
+    points = [
+        (-L + a + i * spacing + (j % 2) * spacing / 2, -L + a + j * spacing * np.sqrt(3) / 2)
+        for j in range(rows)
+        for i in range(cols)
+    ]
     jitter = np.random.default_rng(0).uniform(-0.01, 0.01, (len(points), 2)) * a
     position = (np.array(points) + jitter).astype(np.float32).astype(np.float64)
     approx, exact = all_pair_forces_float32_and_float64(position, np.full(len(position), a))
@@ -136,8 +139,9 @@ def test_kinetic_energy_decays_without_gravity_or_walls():
     v0 = np.asarray(jax.random.uniform(jax.random.PRNGKey(1), grid.shape, minval=-0.02, maxval=0.02))
     x, v = simulate(grid, v0, radius, config, n_frames=40, save_every=10, return_velocity=True)
     assert np.all(np.abs(np.asarray(x)) < L - 3e-3)  # no wall was touched
-    energy = 0.5 * np.sum(np.asarray(particle_mass(jnp.asarray(radius), config, 2))[None, :, None] * np.asarray(v) ** 2,
-                          axis=(1, 2))
+    energy = 0.5 * np.sum(
+        np.asarray(particle_mass(jnp.asarray(radius), config, 2))[None, :, None] * np.asarray(v) ** 2, axis=(1, 2)
+    )
     assert np.all(np.diff(energy) < 0)
     assert energy[-1] < 0.5 * energy[0]
 
@@ -286,8 +290,14 @@ def test_non_finite_padding_rows_never_reach_real_particles():
     mask = jnp.arange(14) < 12
     pad = lambda arr, value: jnp.concatenate([arr, jnp.full((2,) + arr.shape[1:], value, arr.dtype)])
     alone = np.asarray(simulate(state.position, state.velocity, state.radius, CONFIG, n_frames=10))
-    padded = simulate(pad(state.position, jnp.nan), pad(state.velocity, jnp.inf), pad(state.radius, jnp.nan),
-                      CONFIG, n_frames=10, mask=mask)
+    padded = simulate(
+        pad(state.position, jnp.nan),
+        pad(state.velocity, jnp.inf),
+        pad(state.radius, jnp.nan),
+        CONFIG,
+        n_frames=10,
+        mask=mask,
+    )
     np.testing.assert_array_equal(np.asarray(padded)[:, :12], alone)
 
 
@@ -303,8 +313,9 @@ def test_traced_overflow_poisons_only_frames_from_the_overflow_on():
     x0 = np.array([[-0.05, -L + 0.02], [0.05, -L + 0.02]])
     v0 = np.tile([0.0, -1.0], (2, 1))
     radius = np.full(2, 5e-3)
-    run = np.asarray(jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=30, collision_capacity=1))(
-        x0, v0, radius))
+    run = np.asarray(
+        jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=30, collision_capacity=1))(x0, v0, radius)
+    )
     exact = np.asarray(simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=None))
     finite = np.isfinite(run).all(axis=(1, 2))
     first_bad = int(np.argmin(finite))

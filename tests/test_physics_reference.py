@@ -13,10 +13,17 @@ DATA = Path(__file__).parent / "data"
 
 def reference_config(data) -> PhysicsConfig:
     return PhysicsConfig(
-        thickness=float(data["s"]), density=float(data["rho"]), fluid_density=float(data["rho_f"]),
-        gravity=float(data["g"]), box_half_size=float(data["L"]), drag=float(data["k"]),
-        lj_exponent=int(data["p"]), well_depth_coeff=float(data["U0_coeff"]),
-        min_distance_coeff=float(data["r_m_coeff"]), restitution=float(data["gamma"]), dt=float(data["dt"]),
+        thickness=float(data["s"]),
+        density=float(data["rho"]),
+        fluid_density=float(data["rho_f"]),
+        gravity=float(data["g"]),
+        box_half_size=float(data["L"]),
+        drag=float(data["k"]),
+        lj_exponent=int(data["p"]),
+        well_depth_coeff=float(data["U0_coeff"]),
+        min_distance_coeff=float(data["r_m_coeff"]),
+        restitution=float(data["gamma"]),
+        dt=float(data["dt"]),
     )
 
 
@@ -41,8 +48,14 @@ def test_collisions_match_reference(name, n_steps, capacity):
     data = np.load(DATA / f"{name}.npz")
     with jax.enable_x64(True):
         positions, velocities = simulate(
-            data["x0"], data["v0"], data["radius"], reference_config(data),
-            n_frames=n_steps + 1, save_every=1, return_velocity=True, collision_capacity=capacity,
+            data["x0"],
+            data["v0"],
+            data["radius"],
+            reference_config(data),
+            n_frames=n_steps + 1,
+            save_every=1,
+            return_velocity=True,
+            collision_capacity=capacity,
         )
         assert positions.dtype == np.float64
         np.testing.assert_allclose(np.asarray(positions), data["frames"], rtol=0, atol=1e-12)

@@ -10,10 +10,27 @@ from PIL import Image
 from dispgns.cli import main
 from dispgns.data import load_dataset, read_split
 
-TRAIN = ["--set", "model.latent_size=16", "--set", "model.hidden_size=16", "--set", "model.message_passing_steps=2",
-         "--set", "train.learning_rate=3e-3", "--set", "train.lr_decay_steps=400", "--set",
-         "train.min_learning_rate=1e-5", "--set", "train.validate_every=200", "--set",
-         "train.validation_rollout_frames=30", "--steps", "400", "--no-progress"]
+TRAIN = [
+    "--set",
+    "model.latent_size=16",
+    "--set",
+    "model.hidden_size=16",
+    "--set",
+    "model.message_passing_steps=2",
+    "--set",
+    "train.learning_rate=3e-3",
+    "--set",
+    "train.lr_decay_steps=400",
+    "--set",
+    "train.min_learning_rate=1e-5",
+    "--set",
+    "train.validate_every=200",
+    "--set",
+    "train.validation_rollout_frames=30",
+    "--steps",
+    "400",
+    "--no-progress",
+]
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +42,24 @@ def trained(tiny_dataset, tmp_path_factory):
 
 def test_trained_model_beats_constant_velocity_on_training_trajectories(tiny_dataset, trained, tmp_path, capsys):
     out = tmp_path / "eval-train"
-    assert main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "train",
-                 "--out", str(out), "--no-chaos", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--model",
+                str(trained),
+                "--data",
+                str(tiny_dataset),
+                "--splits",
+                "train",
+                "--out",
+                str(out),
+                "--no-chaos",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "metrics.json").read_text())
     for m in report["splits"]["train"]["trajectories"]:
         assert m["finite"] and m["mse"] < m["constant_velocity_mse"], (m["mse"], m["constant_velocity_mse"])
@@ -35,8 +68,10 @@ def test_trained_model_beats_constant_velocity_on_training_trajectories(tiny_dat
 
 def test_evaluate_writes_metrics_predictions_and_plots(tiny_dataset, trained, tmp_path):
     out = tmp_path / "eval"
-    assert main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--out", str(out),
-                 "--no-progress"]) == 0
+    assert (
+        main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--out", str(out), "--no-progress"])
+        == 0
+    )
     report = json.loads((out / "metrics.json").read_text())
     _, splits = load_dataset(tiny_dataset, ["test", "test_unseen"])
     assert set(report["splits"]) == {"test", "test_unseen"}
@@ -46,9 +81,20 @@ def test_evaluate_writes_metrics_predictions_and_plots(tiny_dataset, trained, tm
         assert entry["chaos_floor"] and entry["summary"]["n_trajectories"] == len(trajectories)
         metrics = entry["trajectories"][0]
         assert len(metrics["per_frame_mse"]) == 60 - 6
-        for key in ("mse", "rmse_mm", "rmse_diameters", "mse_h1", "mse_h10", "mse_h50", "constant_velocity_mse",
-                    "chaos_floor_mse", "wall_violations_total", "overlaps_total", "kinetic_energy_relative_error",
-                    "mean_height_error"):
+        for key in (
+            "mse",
+            "rmse_mm",
+            "rmse_diameters",
+            "mse_h1",
+            "mse_h10",
+            "mse_h50",
+            "constant_velocity_mse",
+            "chaos_floor_mse",
+            "wall_violations_total",
+            "overlaps_total",
+            "kinetic_energy_relative_error",
+            "mean_height_error",
+        ):
             assert key in metrics, key
         assert metrics["mse_h100"] is None  # longer than the 54 predicted frames: reported as missing
         assert 0 <= metrics["chaos_floor_mse"] < metrics["constant_velocity_mse"]
@@ -66,36 +112,110 @@ def test_evaluate_writes_metrics_predictions_and_plots(tiny_dataset, trained, tm
 
 def test_render_from_predictions_and_from_model(tiny_dataset, trained, tmp_path, capsys):
     evaluated = tmp_path / "eval"
-    assert main(["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "test",
-                 "--out", str(evaluated), "--no-chaos", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--model",
+                str(trained),
+                "--data",
+                str(tiny_dataset),
+                "--splits",
+                "test",
+                "--out",
+                str(evaluated),
+                "--no-chaos",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     prefix = tmp_path / "pictures" / "test0"
-    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--predictions",
-                 str(evaluated / "predictions" / "test.h5"), "--out", str(prefix), "--stride", "3"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--data",
+                str(tiny_dataset),
+                "--split",
+                "test",
+                "--predictions",
+                str(evaluated / "predictions" / "test.h5"),
+                "--out",
+                str(prefix),
+                "--stride",
+                "3",
+            ]
+        )
+        == 0
+    )
     gif = Image.open(f"{prefix}.gif")
     assert gif.n_frames == 20  # 60 frames, every 3rd
     assert (tmp_path / "pictures" / "test0.mp4").stat().st_size > 1000
     assert Image.open(f"{prefix}_grid.png").size[0] > 500
     model_prefix = tmp_path / "pictures" / "model"
-    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--model", str(trained), "--out",
-                 str(model_prefix), "--start", "10", "--stop", "30", "--no-mp4"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--data",
+                str(tiny_dataset),
+                "--split",
+                "test",
+                "--model",
+                str(trained),
+                "--out",
+                str(model_prefix),
+                "--start",
+                "10",
+                "--stop",
+                "30",
+                "--no-mp4",
+            ]
+        )
+        == 0
+    )
     assert Image.open(f"{model_prefix}.gif").n_frames == 10
     assert not (tmp_path / "pictures" / "model.mp4").exists()
     # The same rollout, whether rendered from the file or from the model.
     a, b = Image.open(f"{prefix}_grid.png"), Image.open(f"{model_prefix}_grid.png")
     assert np.array_equal(np.asarray(a), np.asarray(b))
     capsys.readouterr()
-    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--index", "5", "--model",
-                 str(trained)]) == 2
+    assert (
+        main(["render", "--data", str(tiny_dataset), "--split", "test", "--index", "5", "--model", str(trained)]) == 2
+    )
     assert "--index 5: test has trajectories 0..0" in capsys.readouterr().err
-    assert main(["render", "--data", str(tiny_dataset), "--split", "test", "--model", str(trained),
-                 "--grid-frames", "0,99"]) == 2
+    assert (
+        main(
+            ["render", "--data", str(tiny_dataset), "--split", "test", "--model", str(trained), "--grid-frames", "0,99"]
+        )
+        == 2
+    )
     assert "frame 99 is outside 0..59" in capsys.readouterr().err
 
 
 def test_demo_writes_its_files(trained, tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--model", str(trained), "--out", str(out), "--frames", "40", "--seed", "3",
-                 "--stride", "4", "--radii", "4,6,8,10"]) == 0
+    assert (
+        main(
+            [
+                "demo",
+                "--model",
+                str(trained),
+                "--out",
+                str(out),
+                "--frames",
+                "40",
+                "--seed",
+                "3",
+                "--stride",
+                "4",
+                "--radii",
+                "4,6,8,10",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "seed 3" in printed and "rollout MSE" in printed and "constant-velocity baseline" in printed
     report = json.loads((out / "metrics.json").read_text())
@@ -124,8 +244,23 @@ def test_bad_inputs_exit_with_a_message(tiny_dataset, trained, tmp_path, capsys)
 
 def test_evaluate_is_atomic_and_render_checks_what_it_is_given(tiny_dataset, trained, tmp_path, capsys):
     out = tmp_path / "eval"
-    evaluate = ["evaluate", "--model", str(trained), "--data", str(tiny_dataset), "--splits", "test",
-                "--max-trajectories", "1", "--frames", "20", "--no-chaos", "--no-progress", "--out", str(out)]
+    evaluate = [
+        "evaluate",
+        "--model",
+        str(trained),
+        "--data",
+        str(tiny_dataset),
+        "--splits",
+        "test",
+        "--max-trajectories",
+        "1",
+        "--frames",
+        "20",
+        "--no-chaos",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
     assert main(evaluate) == 0
     capsys.readouterr()
     assert main(evaluate) == 2 and "exists and is not empty" in capsys.readouterr().err

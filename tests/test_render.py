@@ -28,8 +28,9 @@ def _files(directory):
 
 def test_animation_gif_and_mp4(tmp_path):
     truth, prediction, radius = _trajectory()
-    result = R.save_rollout_animation(tmp_path / "rollout.gif", truth, prediction, radius, stride=2, start=1,
-                                      box_half_size=0.1, fps=10, dpi=40)
+    result = R.save_rollout_animation(
+        tmp_path / "rollout.gif", truth, prediction, radius, stride=2, start=1, box_half_size=0.1, fps=10, dpi=40
+    )
     assert result["frames"] == len(range(12)[1::2]) == 6
     assert result["gif"] == str(tmp_path / "rollout.gif")
     with Image.open(result["gif"]) as gif:
@@ -84,8 +85,7 @@ def test_particles_are_round_to_scale_and_in_the_box(tmp_path):
     """One disk of radius 0.5 at (0.3, 0.1): its pixels form a circle of the right size and place."""
     truth = np.array([[[0.3, 0.1]]])
     path = tmp_path / "disk.png"
-    fig = R.frame_grid(truth, None, np.array([0.5]), frames=(0,), frame_dt=None, dpi=100, panel_size=4.0,
-                       path=path)
+    fig = R.frame_grid(truth, None, np.array([0.5]), frames=(0,), frame_dt=None, dpi=100, panel_size=4.0, path=path)
     ax = fig.axes[0]
     rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
     height = rgb.shape[0]
@@ -94,7 +94,7 @@ def test_particles_are_round_to_scale_and_in_the_box(tmp_path):
     assert x1 - x0 == pytest.approx(y1 - y0, rel=1e-6)  # equal aspect
     scale = (x1 - x0) / 2.0  # pixels per box unit
     # The disk's colour: the colour map's value at the (single) radius.
-    inside = rgb[int(height - y1) + 3:int(height - y0) - 3, int(x0) + 3:int(x1) - 3]
+    inside = rgb[int(height - y1) + 3 : int(height - y0) - 3, int(x0) + 3 : int(x1) - 3]
     white = np.all(inside > 240, axis=-1)
     dark = np.all(inside < 60, axis=-1)
     disk = ~white & ~dark
@@ -110,18 +110,28 @@ def test_particles_are_round_to_scale_and_in_the_box(tmp_path):
 
 
 def test_curve_plots(tmp_path):
-    curves = {"model": [1e-5, 2e-5, 0.0, 4e-5], "constant velocity": {"mean": [1e-6, 1e-4, 1e-3, 1e-2],
-                                                                    "std": [0, 1e-5, 1e-4, 1e-3]}}
+    curves = {
+        "model": [1e-5, 2e-5, 0.0, 4e-5],
+        "constant velocity": {"mean": [1e-6, 1e-4, 1e-3, 1e-2], "std": [0, 1e-5, 1e-4, 1e-3]},
+    }
     fig = R.plot_error_curves(curves, frame_dt=1.5e-3, path=tmp_path / "errors.png", dpi=50)
     assert fig.axes[0].get_yscale() == "log"
-    metrics = {"frame_dt": 1.5e-3, "per_frame_mse": [1e-5, 2e-5], "constant_velocity_per_frame_mse": [1e-6, 1e-3],
-               "chaos_floor_per_frame_mse": [1e-14, 1e-12]}
+    metrics = {
+        "frame_dt": 1.5e-3,
+        "per_frame_mse": [1e-5, 2e-5],
+        "constant_velocity_per_frame_mse": [1e-6, 1e-3],
+        "chaos_floor_per_frame_mse": [1e-14, 1e-12],
+    }
     fig = R.plot_rollout_errors(metrics, path=tmp_path / "rollout_errors.png")
     assert len(fig.axes[0].get_lines()) == 3
-    fig = R.plot_training_curve(list(range(0, 100, 10)), [1.0 / (s + 1) for s in range(10)],
-                                validation={"one-step": ([0, 50, 90], [1.0, 0.1, 0.05]),
-                                            "rollout MSE": ([0, 90], [0.1, 0.01])},
-                                smooth=3, path=tmp_path / "training.png", dpi=50)
+    fig = R.plot_training_curve(
+        list(range(0, 100, 10)),
+        [1.0 / (s + 1) for s in range(10)],
+        validation={"one-step": ([0, 50, 90], [1.0, 0.1, 0.05]), "rollout MSE": ([0, 90], [0.1, 0.01])},
+        smooth=3,
+        path=tmp_path / "training.png",
+        dpi=50,
+    )
     assert len(fig.axes[0].get_lines()) == 4
     R.plot_training_curve([0, 1], [1.0, 0.5], validation=([1], [0.7]), logy=False, path=tmp_path / "t2.png")
     for name in ("errors.png", "rollout_errors.png", "training.png", "t2.png"):

@@ -53,7 +53,8 @@ def test_import_tunes_allocator_and_opt_out_restores_defaults():
 
 def test_bad_keep_free_bytes_is_rejected():
     from dispgns.runtime import tune_host_allocator
-    for bad in (0, 2 ** 31):
+
+    for bad in (0, 2**31):
         with pytest.raises(ValueError, match="keep_free_bytes"):
             tune_host_allocator(bad)
 
@@ -101,6 +102,7 @@ def test_physics_jit_drops_an_option_value_xla_refuses(monkeypatch):
 
 def test_this_jaxlib_accepts_the_real_options():
     from dispgns import ModelConfig
+
     for options in (runtime.physics_compiler_options(), runtime.network_compiler_options(ModelConfig())):
         items = tuple(sorted(options.items()))
         assert items and runtime._known_options(items) == items
@@ -112,9 +114,9 @@ def test_physics_jit_with_the_real_options_equals_plain_jit():
     np.testing.assert_allclose(np.asarray(runtime.physics_jit(f)(x)), np.asarray(jax.jit(f)(x)), rtol=1e-6)
 
 
-
 def test_network_compiler_options_depend_on_the_matmul_dtype():
     from dispgns import ModelConfig
+
     assert runtime.network_compiler_options(ModelConfig()) == {"xla_cpu_experimental_ynn_fusion_type": ""}
     assert runtime.network_compiler_options(None) == runtime.network_compiler_options(ModelConfig())
     assert runtime.network_compiler_options(ModelConfig(matmul_dtype="bfloat16")) == {}
@@ -122,6 +124,7 @@ def test_network_compiler_options_depend_on_the_matmul_dtype():
 
 def test_network_jit_takes_the_options_of_the_calls_config_at_top_level_only(monkeypatch, jaxlib_uses_ynnpack):
     from dispgns import ModelConfig
+
     x = jaxlib_uses_ynnpack
     seen = []
 
@@ -130,8 +133,9 @@ def test_network_jit_takes_the_options_of_the_calls_config_at_top_level_only(mon
         return NO_YNNPACK if model_config.matmul_dtype == "float32" else {}
 
     monkeypatch.setattr(runtime, "network_compiler_options", options)
-    f = runtime.network_jit(lambda x, *, model_config: _dot(x) + model_config.latent_size,
-                            static_argnames=("model_config",))
+    f = runtime.network_jit(
+        lambda x, *, model_config: _dot(x) + model_config.latent_size, static_argnames=("model_config",)
+    )
     assert not _uses_ynnpack(f.lower(x, model_config=ModelConfig()).compile().as_text())
     assert _uses_ynnpack(f.lower(x, model_config=ModelConfig(matmul_dtype="bfloat16")).compile().as_text())
     assert _uses_ynnpack(jax.jit(lambda y: f(y, model_config=ModelConfig())).lower(x).compile().as_text())
@@ -146,18 +150,21 @@ def test_network_jit_takes_the_options_of_the_calls_config_at_top_level_only(mon
 
 def test_every_network_entry_point_compiles_with_the_options(jaxlib_uses_ynnpack):
     """train_step, the validation loss, one step and the (batched) rollout chunks: no YNNPACK dot at float32."""
+    from types import SimpleNamespace
+
     from dispgns import ModelConfig
     from dispgns.data.examples import BatchStream
     from dispgns.graph import GraphCapacity
     from dispgns.simulator import _rollout_chunk, _rollout_chunk_batch, _step_jit
     from dispgns.training import TrainConfig, create_train_state, train_step
     from dispgns.training.loop import _clean_loss
-    from types import SimpleNamespace
 
     config = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=1)
     rng = np.random.default_rng(0)
-    traj = SimpleNamespace(position=(rng.uniform(-0.5, 0.5, (1, 6, 2)) + 1e-3 * np.arange(9)[:, None, None])
-                           .astype(np.float32), radius=np.full((6,), 0.04, np.float32))
+    traj = SimpleNamespace(
+        position=(rng.uniform(-0.5, 0.5, (1, 6, 2)) + 1e-3 * np.arange(9)[:, None, None]).astype(np.float32),
+        radius=np.full((6,), 0.04, np.float32),
+    )
     train_config = TrainConfig(standardize=False)
     state = create_train_state(jax.random.key(0), config, train_config)
     batch = BatchStream([traj], input_sequence_length=6, batch_size=1, connectivity_radius=0.2).batch(0)
@@ -167,26 +174,38 @@ def test_every_network_entry_point_compiles_with_the_options(jaxlib_uses_ynnpack
         "train_step": train_step.lower(state, batch, jax.random.key(1)),
         "_clean_loss": _clean_loss.lower(state.params, batch, config, train_config),
         "_step_jit": _step_jit.lower(state.params, window, radius, mask, capacity=capacity, model_config=config),
-        "_rollout_chunk": _rollout_chunk.lower(state.params, window, radius, mask, jnp.int32(2), length=2,
-                                               capacity=capacity, model_config=config),
-        "_rollout_chunk_batch": _rollout_chunk_batch.lower(state.params, window[None], radius[None], mask[None],
-                                                           jnp.int32(2), length=2, capacity=capacity,
-                                                           model_config=config),
+        "_rollout_chunk": _rollout_chunk.lower(
+            state.params, window, radius, mask, jnp.int32(2), length=2, capacity=capacity, model_config=config
+        ),
+        "_rollout_chunk_batch": _rollout_chunk_batch.lower(
+            state.params,
+            window[None],
+            radius[None],
+            mask[None],
+            jnp.int32(2),
+            length=2,
+            capacity=capacity,
+            model_config=config,
+        ),
     }
     for name, low in lowered.items():
         assert not _uses_ynnpack(low.compile().as_text()), name
     bf16 = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=1, matmul_dtype="bfloat16")
-    assert _uses_ynnpack(_step_jit.lower(state.params, window, radius, mask, capacity=capacity,
-                                         model_config=bf16).compile().as_text())
+    assert _uses_ynnpack(
+        _step_jit.lower(state.params, window, radius, mask, capacity=capacity, model_config=bf16).compile().as_text()
+    )
 
 
 def test_options_unknown_to_jaxlib_are_dropped_with_a_warning():
     runtime._known_options.cache_clear()
-    f = runtime.cpu_jit(lambda x: jnp.tanh(x) * 3.0, options=lambda x: {"xla_cpu_option_that_does_not_exist": 1,
-                                                                           "xla_cpu_prefer_vector_width": 512})
+    f = runtime.cpu_jit(
+        lambda x: jnp.tanh(x) * 3.0,
+        options=lambda x: {"xla_cpu_option_that_does_not_exist": 1, "xla_cpu_prefer_vector_width": 512},
+    )
     x = jnp.linspace(-1.0, 1.0, 7)
     with pytest.warns(RuntimeWarning, match="xla_cpu_option_that_does_not_exist"):
         y = f(x)
     np.testing.assert_allclose(np.asarray(y), np.tanh(np.asarray(x)) * 3.0, rtol=1e-6)
-    assert runtime._known_options((("xla_cpu_option_that_does_not_exist", 1), ("xla_cpu_prefer_vector_width", 512))) \
-        == (("xla_cpu_prefer_vector_width", 512),)
+    assert runtime._known_options(
+        (("xla_cpu_option_that_does_not_exist", 1), ("xla_cpu_prefer_vector_width", 512))
+    ) == (("xla_cpu_prefer_vector_width", 512),)

@@ -28,8 +28,12 @@ def inputs():
 @pytest.fixture(scope="module")
 def params():
     # Small accelerations keep the untrained rollouts tame (no chaotic amplification).
-    norm = {"velocity_mean": jnp.zeros(2), "velocity_std": jnp.full((2,), 0.05),
-            "acceleration_mean": jnp.zeros(2), "acceleration_std": jnp.full((2,), 0.002)}
+    norm = {
+        "velocity_mean": jnp.zeros(2),
+        "velocity_std": jnp.full((2,), 0.05),
+        "acceleration_mean": jnp.zeros(2),
+        "acceleration_std": jnp.full((2,), 0.002),
+    }
     return init_params(jax.random.key(1), TINY, norm)
 
 
@@ -62,19 +66,24 @@ def test_overflow_is_caught_and_recomputed(params, inputs):
     # One step too: a too-small capacity is grown, never truncated.
     np.testing.assert_allclose(
         np.asarray(predict_position(params, x, a, model_config=TINY, capacity=16)),
-        np.asarray(big[0]), rtol=0, atol=2e-6)
+        np.asarray(big[0]),
+        rtol=0,
+        atol=2e-6,
+    )
 
 
 def test_a_chunk_stops_at_its_first_overflowing_step(params, inputs):
     from dispgns.simulator import _rollout_chunk
+
     x, a = inputs
     mask = jnp.ones((N,), bool)
     window, expected = x, []
     for _ in range(4):
         expected.append(predict_position(params, window, a, model_config=TINY, capacity=CAP))
         window = jnp.concatenate([window[1:], expected[-1][None]])
-    run = lambda limit, capacity: _rollout_chunk(params, x, a, mask, jnp.int32(limit), length=6, capacity=capacity,
-                                                 model_config=TINY)
+    run = lambda limit, capacity: _rollout_chunk(
+        params, x, a, mask, jnp.int32(limit), length=6, capacity=capacity, model_config=TINY
+    )
     window, positions, taken, overflow = run(4, CAP)
     assert int(taken) == 4 and not bool(overflow)
     np.testing.assert_allclose(np.asarray(positions[:4]), np.asarray(jnp.stack(expected)), rtol=0, atol=2e-6)
@@ -93,11 +102,15 @@ def _counting_step(window, capacity, axis):
 @pytest.mark.parametrize("axis", [0, 1])
 def test_the_step_loop_stops_mid_chunk_at_an_overflow(axis):
     from dispgns.simulator import _steps_until_overflow
+
     window = jnp.moveaxis(jnp.broadcast_to(jnp.arange(3.0)[:, None, None, None], (3, 2, 1, 1)), 0, axis)
     if axis == 0:
         window = window[:, 0]
-    run = jax.jit(lambda w, limit, cap: _steps_until_overflow(lambda w: _counting_step(w, cap, axis), w, limit,
-                                                              length=8, axis=axis))
+    run = jax.jit(
+        lambda w, limit, cap: _steps_until_overflow(
+            lambda w: _counting_step(w, cap, axis), w, limit, length=8, axis=axis
+        )
+    )
     new_window, positions, taken, overflow = run(window, jnp.int32(8), 5.0)
     # Frames 3, 4, 5 are fine; the step from frame 5 overflows (and is the last one taken).
     assert int(taken) == 4 and bool(overflow)
@@ -115,6 +128,7 @@ def test_the_step_loop_stops_mid_chunk_at_an_overflow(axis):
 def test_the_chunk_loop_redoes_only_the_overflowing_step(axis):
     """The host loop on a counting stand-in, for one trajectory (axis 0) and a batch of two (axis 1)."""
     from dispgns.simulator import _roll_in_chunks
+
     calls, done = [], []
 
     def run_chunk(window, limit, length, capacity):
@@ -124,8 +138,9 @@ def test_the_chunk_loop_redoes_only_the_overflowing_step(axis):
             calls.append(float(jnp.max(nxt)) - 1)
             frames.append(nxt)
             if not overflow:  # as the compiled loop: the window before the overflowing step
-                window = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis),
-                                          jnp.expand_dims(nxt, axis)], axis=axis)
+                window = jnp.concatenate(
+                    [lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)], axis=axis
+                )
         taken = len(frames)
         positions = jnp.concatenate([jnp.stack(frames), jnp.zeros((length - taken,) + frames[0].shape)])
         return window, positions, taken, bool(overflow)
@@ -133,7 +148,7 @@ def test_the_chunk_loop_redoes_only_the_overflowing_step(axis):
     window = jnp.zeros((3, 1, 1)) if axis == 0 else jnp.zeros((2, 3, 1, 1))
     grow = lambda capacity, frame: float(jnp.max(frame)) + 7
     out = _roll_in_chunks(run_chunk, window, 23, 10, 4, grow, axis=axis, progress=done.append)
-    assert out.shape == (23,) + window.shape[:axis] + window.shape[axis + 1:]
+    assert out.shape == (23,) + window.shape[:axis] + window.shape[axis + 1 :]
     flat = np.asarray(out).reshape(23, -1)
     np.testing.assert_array_equal(flat, np.broadcast_to(np.arange(1.0, 24.0)[:, None], flat.shape))
     # Overflows at t = 4, 11 and 18 (capacity 4 -> 11 -> 18 -> 25): every step once, those three twice.
@@ -155,33 +170,36 @@ def test_traced_overflow_poisons_with_nan(params, inputs):
 def test_vmap_over_padded_trajectories_equals_loop(params, inputs):
     x, a = inputs
     sizes = (N, N - 11)
-    second = x[:, 5:5 + sizes[1]] * jnp.array([-1.0, 1.0])  # another configuration (mirrored)
+    second = x[:, 5 : 5 + sizes[1]] * jnp.array([-1.0, 1.0])  # another configuration (mirrored)
     xs = jnp.stack([x, jnp.pad(second, ((0, 0), (0, N - sizes[1]), (0, 0)))])
-    radii = jnp.stack([a, jnp.pad(a[5:5 + sizes[1]], (0, N - sizes[1]))])
+    radii = jnp.stack([a, jnp.pad(a[5 : 5 + sizes[1]], (0, N - sizes[1]))])
     masks = jnp.stack([jnp.ones(N, bool), jnp.arange(N) < sizes[1]])
-    batched = jax.jit(jax.vmap(lambda x, r, m: rollout(params, x, r, STEPS, model_config=TINY, mask=m,
-                                                       capacity=CAP)))(xs, radii, masks)
+    batched = jax.jit(jax.vmap(lambda x, r, m: rollout(params, x, r, STEPS, model_config=TINY, mask=m, capacity=CAP)))(
+        xs, radii, masks
+    )
     for k, n in enumerate(sizes):
         single = rollout(params, xs[k, :, :n], radii[k, :n], STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
         np.testing.assert_allclose(np.asarray(batched[k, :, :n]), np.asarray(single), rtol=0, atol=2e-6)
     # Padding particles stay where they were.
-    np.testing.assert_array_equal(np.asarray(batched[1, :, sizes[1]:]),
-                                  np.broadcast_to(np.asarray(xs[1, -1, sizes[1]:]), (STEPS, N - sizes[1], 2)))
+    np.testing.assert_array_equal(
+        np.asarray(batched[1, :, sizes[1] :]),
+        np.broadcast_to(np.asarray(xs[1, -1, sizes[1] :]), (STEPS, N - sizes[1], 2)),
+    )
 
 
 def test_rollout_batch_equals_single_rollouts_and_survives_overflow(params, inputs):
     x, a = inputs
     sizes = (N, N - 11)
-    second = x[:, 5:5 + sizes[1]] * jnp.array([-1.0, 1.0])
+    second = x[:, 5 : 5 + sizes[1]] * jnp.array([-1.0, 1.0])
     xs = jnp.stack([x, jnp.pad(second, ((0, 0), (0, N - sizes[1]), (0, 0)))])
-    radii = jnp.stack([a, jnp.pad(a[5:5 + sizes[1]], (0, N - sizes[1]), constant_values=1.0)])
+    radii = jnp.stack([a, jnp.pad(a[5 : 5 + sizes[1]], (0, N - sizes[1]), constant_values=1.0)])
     masks = np.stack([np.ones(N, bool), np.arange(N) < sizes[1]])
     done = []
-    batched = rollout_batch(params, xs, radii, STEPS, model_config=TINY, mask=masks, chunk_size=5,
-                            progress=done.append)
+    batched = rollout_batch(params, xs, radii, STEPS, model_config=TINY, mask=masks, chunk_size=5, progress=done.append)
     # Too small a capacity at first: overflow, growth, recomputation, same answer.
-    small = rollout_batch(params, xs, radii, STEPS, model_config=TINY, mask=masks, capacity=GraphCapacity(16),
-                          chunk_size=5)
+    small = rollout_batch(
+        params, xs, radii, STEPS, model_config=TINY, mask=masks, capacity=GraphCapacity(16), chunk_size=5
+    )
     assert batched.shape == (2, STEPS, N, 2) and done[-1] == STEPS
     np.testing.assert_allclose(np.asarray(small), np.asarray(batched), rtol=0, atol=1e-6)
     for k, n in enumerate(sizes):
@@ -223,8 +241,12 @@ def test_keep_inside_box_projects_onto_the_walls(inputs):
 
     x, a = inputs
     # A model that pushes everything towards +x: without the constraint particles leave the box.
-    norm = {"velocity_mean": jnp.zeros(2), "velocity_std": jnp.full((2,), 0.05),
-            "acceleration_mean": jnp.array([0.5, 0.0]), "acceleration_std": jnp.full((2,), 1e-4)}
+    norm = {
+        "velocity_mean": jnp.zeros(2),
+        "velocity_std": jnp.full((2,), 0.05),
+        "acceleration_mean": jnp.array([0.5, 0.0]),
+        "acceleration_std": jnp.full((2,), 1e-4),
+    }
     free_config = TINY
     boxed_config = dataclasses.replace(TINY, keep_inside_box=True)
     params = init_params(jax.random.key(1), free_config, norm)
@@ -270,6 +292,7 @@ def test_rollouts_of_other_trajectories_reuse_the_compiled_capacities(params, mo
     """Data-sized capacities go on the ladder, so two trajectories with different pair counts share them."""
     from dispgns import simulator
     from dispgns.graph import host_count_pairs
+
     with np.load(DATA) as d:  # all 150 particles: enough pairs for capacities a rung apart
         x, a = jnp.asarray(d["positions"], jnp.float32), jnp.asarray(d["radius"], jnp.float32)
     seen = []

@@ -10,14 +10,36 @@ from dispgns.cli import main
 from dispgns.data import load_dataset
 from dispgns.data.examples import BatchStream
 from dispgns.training import TrainConfig, compute_normalization, create_train_state
-from dispgns.training.checkpoint import CheckpointError, Checkpointer, export_model, load_model
+from dispgns.training.checkpoint import Checkpointer, CheckpointError, export_model, load_model
 from dispgns.training.loop import Validator, train
 
-LOOP = TrainConfig(learning_rate=1e-3, log_every=5, validate_every=10, checkpoint_every=10, keep_checkpoints=2,
-                   validation_examples=8, validation_trajectories=1, validation_rollout_frames=10)
-TINY_ARGS = ["--set", "model.latent_size=16", "--set", "model.hidden_size=16", "--set",
-             "model.message_passing_steps=2", "--set", "train.log_every=10", "--set", "train.validate_every=20",
-             "--set", "train.checkpoint_every=20", "--set", "train.validation_rollout_frames=20", "--no-progress"]
+LOOP = TrainConfig(
+    learning_rate=1e-3,
+    log_every=5,
+    validate_every=10,
+    checkpoint_every=10,
+    keep_checkpoints=2,
+    validation_examples=8,
+    validation_trajectories=1,
+    validation_rollout_frames=10,
+)
+TINY_ARGS = [
+    "--set",
+    "model.latent_size=16",
+    "--set",
+    "model.hidden_size=16",
+    "--set",
+    "model.message_passing_steps=2",
+    "--set",
+    "train.log_every=10",
+    "--set",
+    "train.validate_every=20",
+    "--set",
+    "train.checkpoint_every=20",
+    "--set",
+    "train.validation_rollout_frames=20",
+    "--no-progress",
+]
 
 
 def leaves(tree):
@@ -71,12 +93,16 @@ def test_loop_logs_validates_and_keeps_last_and_best(data, tiny_model_config, tm
     checkpointer = Checkpointer(tmp_path / "run", keep=2)
     values = iter([3.0, 1.0, 2.0])
     scored = lambda params: {"valid_rollout_mse": next(values)}
-    result = train(state, stream, key, until_step=30, validator=scored, checkpointer=checkpointer,
-                   on_log=records.append)
+    result = train(
+        state, stream, key, until_step=30, validator=scored, checkpointer=checkpointer, on_log=records.append
+    )
     checkpointer.close()
     assert [r["step"] for r in records if r["kind"] == "train"] == [5, 10, 15, 20, 25, 30]
     assert [(r["step"], r["valid_rollout_mse"]) for r in records if r["kind"] == "validation"] == [
-        (10, 3.0), (20, 1.0), (30, 2.0)]
+        (10, 3.0),
+        (20, 1.0),
+        (30, 2.0),
+    ]
     assert sorted(int(p.name) for p in (tmp_path / "run" / "checkpoints").iterdir() if p.name.isdigit()) == [20, 30]
     assert [p.name for p in (tmp_path / "run" / "best").iterdir() if p.name.isdigit()] == ["20"]
     assert not result.interrupted and int(result.state.step) == 30
@@ -134,8 +160,10 @@ def test_cli_train_resume_equals_uninterrupted(tiny_dataset, tmp_path, capsys):
     whole, split = tmp_path / "whole", tmp_path / "split"
     assert main(["train", "--data", str(tiny_dataset), "--out", str(whole), "--steps", "40", *TINY_ARGS]) == 0
     assert main(["train", "--data", str(tiny_dataset), "--out", str(split), "--steps", "20", *TINY_ARGS]) == 0
-    assert main(["train", "--data", str(tiny_dataset), "--out", str(split), "--steps", "40", "--resume",
-                 "--no-progress"]) == 0
+    assert (
+        main(["train", "--data", str(tiny_dataset), "--out", str(split), "--steps", "40", "--resume", "--no-progress"])
+        == 0
+    )
     for a, b in zip(cli_params(whole), cli_params(split)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
     records = [json.loads(line) for line in (split / "log.jsonl").read_text().splitlines()]
@@ -147,19 +175,45 @@ def test_cli_train_resume_equals_uninterrupted(tiny_dataset, tmp_path, capsys):
     assert (split / "training_curve.png").stat().st_size > 1000
     # The checkpoint carries the resolved config too.
     again = Checkpointer(split)
-    template = create_train_state(jax.random.key(0), load_model(split / "model")[1], TrainConfig(num_steps=40),
-                                  {k: np.asarray(v, np.float32) for k, v in config["normalization"].items()})
+    template = create_train_state(
+        jax.random.key(0),
+        load_model(split / "model")[1],
+        TrainConfig(num_steps=40),
+        {k: np.asarray(v, np.float32) for k, v in config["normalization"].items()},
+    )
     _, _, extra = again.restore(template, jax.random.key(0))
     again.close()
     assert extra["config"]["model"] == config["model"] and extra["step"] == 40
 
     # A resumed run must keep its model and learning settings.
-    code = main(["train", "--data", str(tiny_dataset), "--out", str(split), "--resume", "--set",
-                 "model.input_sequence_length=5", "--no-progress"])
+    code = main(
+        [
+            "train",
+            "--data",
+            str(tiny_dataset),
+            "--out",
+            str(split),
+            "--resume",
+            "--set",
+            "model.input_sequence_length=5",
+            "--no-progress",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "input_sequence_length: checkpoint 6, requested 5" in err
-    code = main(["train", "--data", str(tiny_dataset), "--out", str(split), "--resume", "--set",
-                 "train.noise_std=0.1", "--no-progress"])
+    code = main(
+        [
+            "train",
+            "--data",
+            str(tiny_dataset),
+            "--out",
+            str(split),
+            "--resume",
+            "--set",
+            "train.noise_std=0.1",
+            "--no-progress",
+        ]
+    )
     assert code == 2 and "noise_std" in capsys.readouterr().err
 
 
@@ -174,16 +228,30 @@ def test_cli_train_bad_inputs_leave_nothing(tiny_dataset, tmp_path, capsys):
     fails("--data", str(tmp_path / "missing"), "--out", str(run), match="metadata.json: not found")
     broken = tmp_path / "broken"
     broken.mkdir()
-    (broken / "metadata.json").write_text("{\"dim\": 2")
+    (broken / "metadata.json").write_text('{"dim": 2')
     fails("--data", str(broken), "--out", str(run), match="metadata.json: cannot be read as JSON")
-    fails("--data", str(tiny_dataset), "--out", str(run), "--set", "model.latent_size=0",
-          match="ModelConfig.latent_size must be an integer >= 1")
+    fails(
+        "--data",
+        str(tiny_dataset),
+        "--out",
+        str(run),
+        "--set",
+        "model.latent_size=0",
+        match="ModelConfig.latent_size must be an integer >= 1",
+    )
     fails("--data", str(tiny_dataset), "--out", str(run), "--set", "model.dim=3", match="'dim' is 2")
     fails("--data", str(tiny_dataset), "--out", str(run), "--set", "nosection", match="SECTION.FIELD=VALUE")
     config = tmp_path / "config.yaml"
     config.write_text("model:\n  latent_sise: 8\n")
-    fails("--data", str(tiny_dataset), "--out", str(run), "--config", str(config),
-          match="unknown ModelConfig field(s) ['latent_sise']")
+    fails(
+        "--data",
+        str(tiny_dataset),
+        "--out",
+        str(run),
+        "--config",
+        str(config),
+        match="unknown ModelConfig field(s) ['latent_sise']",
+    )
     fails("--data", str(tiny_dataset), "--out", str(run), "--resume", match="no run to resume")
     assert not run.exists()
     blocker = tmp_path / "file"

@@ -10,8 +10,16 @@ import pytest
 from dispgns.data.examples import BatchStream, example_index
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig
-from dispgns.training import (TrainConfig, compute_normalization, create_train_state, learning_rate_schedule, loss_fn,
-                              random_walk_noise, target_acceleration, train_step)
+from dispgns.training import (
+    TrainConfig,
+    compute_normalization,
+    create_train_state,
+    learning_rate_schedule,
+    loss_fn,
+    random_walk_noise,
+    target_acceleration,
+    train_step,
+)
 from dispgns.training.step import train_step_checked
 
 TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
@@ -65,15 +73,17 @@ def test_target_is_the_noise_corrected_acceleration():
 def test_normalization_statistics(trajectories):
     stats = compute_normalization(trajectories, noise_std=0.0)
     v = np.concatenate([(np.diff(t.position, axis=0) / t.radius[None, :, None]).reshape(-1, 2) for t in trajectories])
-    acc = np.concatenate([(np.diff(t.position, 2, axis=0) / t.radius[None, :, None]).reshape(-1, 2)
-                          for t in trajectories])
+    acc = np.concatenate(
+        [(np.diff(t.position, 2, axis=0) / t.radius[None, :, None]).reshape(-1, 2) for t in trajectories]
+    )
     np.testing.assert_allclose(stats["velocity_mean"], v.mean(0), rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(stats["velocity_std"], v.std(0), rtol=1e-4)
     np.testing.assert_allclose(stats["acceleration_std"], acc.std(0), rtol=1e-4)
     noisy = compute_normalization(trajectories, noise_std=1e-3)
-    inv_a2 = np.mean(np.concatenate([1 / t.radius ** 2 for t in trajectories for _ in range(t.position.shape[0])]))
-    np.testing.assert_allclose(noisy["acceleration_std"] ** 2, stats["acceleration_std"] ** 2 + 1e-6 * inv_a2,
-                               rtol=1e-4)
+    inv_a2 = np.mean(np.concatenate([1 / t.radius**2 for t in trajectories for _ in range(t.position.shape[0])]))
+    np.testing.assert_allclose(
+        noisy["acceleration_std"] ** 2, stats["acceleration_std"] ** 2 + 1e-6 * inv_a2, rtol=1e-4
+    )
 
 
 def test_learning_rate_schedule_has_a_floor():
@@ -88,8 +98,9 @@ def test_learning_rate_schedule_has_a_floor():
 
 def test_batches_are_deterministic_resumable_and_padded(trajectories):
     assert len(example_index([14, 9], 7)) == 8 + 3
-    make = lambda seed: BatchStream(trajectories, input_sequence_length=6, batch_size=3, connectivity_radius=0.2,
-                                    seed=seed)
+    make = lambda seed: BatchStream(
+        trajectories, input_sequence_length=6, batch_size=3, connectivity_radius=0.2, seed=seed
+    )
     stream = make(0)
     assert stream.num_examples == 2 * 8 and stream.batches_per_epoch == 5
     first = [next(stream) for _ in range(7)]
@@ -108,7 +119,7 @@ def test_batches_are_deterministic_resumable_and_padded(trajectories):
     assert b.position.shape == (3, 7, 16, 2) and b.mask.shape == (3, 16)
     for k, (t, s) in enumerate(b.example):
         n = trajectories[t].position.shape[1]
-        np.testing.assert_array_equal(b.position[k, :, :n], trajectories[t].position[s:s + 7])
+        np.testing.assert_array_equal(b.position[k, :, :n], trajectories[t].position[s : s + 7])
         assert b.mask[k].sum() == n and np.all(b.position[k, :, n:] == 0)
         assert b.capacity.edges >= stream.pairs[stream.batch_examples(0)].max()
 
@@ -120,8 +131,10 @@ def test_train_step_skips_on_overflow_and_checked_step_grows(trajectories):
     batch = stream.batch(0).with_capacity(GraphCapacity(8))
     new, metrics = train_step(state, batch, jax.random.key(3))
     assert bool(metrics["overflow"]) and int(new.step) == 0
-    assert all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(new.params),
-                                                     jax.tree_util.tree_leaves(state.params)))
+    assert all(
+        np.array_equal(x, y)
+        for x, y in zip(jax.tree_util.tree_leaves(new.params), jax.tree_util.tree_leaves(state.params))
+    )
     new, metrics, used = train_step_checked(state, batch, jax.random.key(3), grow=lambda b: b.with_capacity(CAPACITY))
     assert not bool(metrics["overflow"]) and int(new.step) == 1 and used.capacity == CAPACITY
     assert np.isfinite(float(metrics["loss"])) and np.isfinite(float(metrics["grad_norm"]))
@@ -147,15 +160,17 @@ def test_pushforward_and_unstandardised_recipe(trajectories):
     tc = TrainConfig(pushforward_steps=2, standardize=False)
     state = create_train_state(jax.random.key(0), TINY, tc)
     np.testing.assert_array_equal(np.asarray(state.params["normalization"]["velocity_std"]), 1.0)
-    stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2,
-                         pushforward_steps=2)
+    stream = BatchStream(
+        trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2, pushforward_steps=2
+    )
     batch = stream.batch(0)
     assert batch.position.shape[1] == 9
     new, metrics = train_step(state, batch, jax.random.key(0))
     assert int(new.step) == 1 and np.isfinite(float(metrics["loss"]))
     with pytest.raises(ValueError, match="frames"):
-        train_step(create_train_state(jax.random.key(0), TINY, TrainConfig(standardize=False)), batch,
-                   jax.random.key(0))
+        train_step(
+            create_train_state(jax.random.key(0), TINY, TrainConfig(standardize=False)), batch, jax.random.key(0)
+        )
     with pytest.raises(ValueError, match="standardize"):
         create_train_state(jax.random.key(0), TINY, TrainConfig())
 

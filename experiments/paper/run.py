@@ -85,8 +85,12 @@ def results(evaluation: dict, run_dir: Path) -> tuple[str, dict]:
     table.append(f"| RMSE (mm) implied by the paper's MSE, sqrt(MSE) L | {paper_rmse[0]} | {paper_rmse[1]} |")
     text = "\n".join(table)
     summary = {
-        "model": {"source": evaluation["model"]["source"], "steps": record.get("steps"),
-                  "config": evaluation["model"]["config"], "train": record.get("train")},
+        "model": {
+            "source": evaluation["model"]["source"],
+            "steps": record.get("steps"),
+            "config": evaluation["model"]["config"],
+            "train": record.get("train"),
+        },
         "dataset": evaluation["dataset"],
         "splits": rows,
         "paper": PAPER,
@@ -95,7 +99,8 @@ def results(evaluation: dict, run_dir: Path) -> tuple[str, dict]:
             rows.get(s, {}).get("mse", {}).get("mean", 1.0) <= TARGET_MSE
             and rows.get(s, {}).get("mse_over_constant_velocity", {}).get("mean", 1.0) <= 0.1
             and rows.get(s, {}).get("wall_violations_total", {}).get("mean", 1.0) == 0
-            for s in PAPER),
+            for s in PAPER
+        ),
         "run": str(run_dir),
     }
     return text, summary
@@ -109,12 +114,20 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0, help="dataset seed (the documented results use 0)")
     parser.add_argument("--steps", type=int, help="training steps (default: the config's num_steps)")
     parser.add_argument("--evaluate-only", action="store_true", help="skip generation and training")
-    parser.add_argument("--ship", action="store_true",
-                        help="copy the trained model and its record into src/dispgns/pretrained/paper")
-    parser.add_argument("--best", action="store_true",
-                        help="evaluate and ship the run's best checkpoint by validation instead of its last step")
-    parser.add_argument("--keep-inside-box", choices=("on", "off"), default="on",
-                        help="the shipped model's keep_inside_box setting (default on)")
+    parser.add_argument(
+        "--ship", action="store_true", help="copy the trained model and its record into src/dispgns/pretrained/paper"
+    )
+    parser.add_argument(
+        "--best",
+        action="store_true",
+        help="evaluate and ship the run's best checkpoint by validation instead of its last step",
+    )
+    parser.add_argument(
+        "--keep-inside-box",
+        choices=("on", "off"),
+        default="on",
+        help="the shipped model's keep_inside_box setting (default on)",
+    )
     args = parser.parse_args()
 
     data, out = Path(args.data), Path(args.out)
@@ -129,12 +142,29 @@ def main() -> int:
             train.append("--resume")
         run_stage(train)
     texts, summaries = [], {}
-    for mode, title in (("off", "the network alone (the paper's method)"),
-                        ("on", "with predicted centres kept inside the box (keep_inside_box)")):
+    for mode, title in (
+        ("off", "the network alone (the paper's method)"),
+        ("on", "with predicted centres kept inside the box (keep_inside_box)"),
+    ):
         eval_dir = out / f"eval-box-{mode}"
-        run_stage(["evaluate", "--model", str(run_dir), "--data", str(data), "--splits", "test", "test_unseen",
-                   "--out", str(eval_dir), "--keep-inside-box", mode, "--overwrite"]
-                  + (["--best"] if args.best else []))
+        run_stage(
+            [
+                "evaluate",
+                "--model",
+                str(run_dir),
+                "--data",
+                str(data),
+                "--splits",
+                "test",
+                "test_unseen",
+                "--out",
+                str(eval_dir),
+                "--keep-inside-box",
+                mode,
+                "--overwrite",
+            ]
+            + (["--best"] if args.best else [])
+        )
         evaluation = json.loads((eval_dir / "metrics.json").read_text())
         text, summary = results(evaluation, run_dir)
         texts.append(f"### {title}\n\n{text}")
@@ -175,8 +205,11 @@ def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool) -> N
     record["paper"] = PAPER
     record["training_log"] = {
         "train": [[r["step"], r["loss"]] for r in log if r.get("kind") == "train"][::10],
-        "validation": [[r["step"], r.get("valid_rollout_mse"), r.get("valid_one_step_loss")]
-                       for r in log if r.get("kind") == "validation"],
+        "validation": [
+            [r["step"], r.get("valid_rollout_mse"), r.get("valid_one_step_loss")]
+            for r in log
+            if r.get("kind") == "validation"
+        ],
         "training_time_s": training_time(log),
     }
     record["normalization"] = config["normalization"]

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 __version__ = "0.1.0"
 
 # First, before anything starts JAX's CPU backend: see dispgns.runtime.
-from dispgns.runtime import (network_compiler_options, physics_compiler_options, tune_at_import as _tune_at_import,
-                             tune_host_allocator)
+from dispgns.runtime import network_compiler_options, physics_compiler_options, tune_host_allocator
+from dispgns.runtime import tune_at_import as _tune_at_import
 
 _tune_at_import()
 
@@ -83,10 +83,22 @@ if TYPE_CHECKING:  # what static tools and IDEs see
     from dispgns.graph import GraphCapacity
     from dispgns.metrics import chaos_floor_rollout, constant_velocity_rollout, rollout_metrics, summarize
     from dispgns.model import ModelConfig, init_params
-    from dispgns.physics import (PhysicsConfig, SimState, euler_integrator, sample_initial_state, simulate,
-                                 simulate_batch)
+    from dispgns.physics import (
+        PhysicsConfig,
+        SimState,
+        euler_integrator,
+        sample_initial_state,
+        simulate,
+        simulate_batch,
+    )
     from dispgns.pretrained import load_pretrained
     from dispgns.simulator import predict_acceleration, predict_position, rollout, rollout_batch
-    from dispgns.training import (TrainConfig, TrainState, compute_normalization, create_train_state,
-                                  make_optimizer, train_step)
+    from dispgns.training import (
+        TrainConfig,
+        TrainState,
+        compute_normalization,
+        create_train_state,
+        make_optimizer,
+        train_step,
+    )
     from dispgns.training.checkpoint import export_model, load_model, load_params

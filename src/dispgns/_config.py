@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 
 def config_from_mapping(cls, values: Mapping[str, Any]):
@@ -46,5 +47,7 @@ def _parse(owner: str, name: str, text: str, kind: type):
             return int(number)
         return float(text)
     except ValueError:
-        raise ValueError(f"{owner}.{name} must be {'a boolean' if kind is bool else f'an {kind.__name__}' if kind is int else 'a number'}, "
-                         f"got {text!r}") from None
+        raise ValueError(
+            f"{owner}.{name} must be {'a boolean' if kind is bool else f'an {kind.__name__}' if kind is int else 'a number'}, "
+            f"got {text!r}"
+        ) from None

@@ -18,7 +18,8 @@ learned simulator; ``rollout_metrics`` adds millimetres and diameters.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -46,9 +47,15 @@ def _padded(trajectories: Sequence[Any], frames: int, budget: int, dim: int):
     return position, radius, mask
 
 
-def predict_trajectories(params, trajectories: Sequence[Any], *, model_config: ModelConfig,
-                         n_frames: int | None = None, batch_size: int = 6,
-                         progress: Callable[[int], None] | None = None) -> list[np.ndarray]:
+def predict_trajectories(
+    params,
+    trajectories: Sequence[Any],
+    *,
+    model_config: ModelConfig,
+    n_frames: int | None = None,
+    batch_size: int = 6,
+    progress: Callable[[int], None] | None = None,
+) -> list[np.ndarray]:
     """Full rollouts of ``trajectories`` from their first ``C`` frames.
 
     Args:
@@ -76,7 +83,7 @@ def predict_trajectories(params, trajectories: Sequence[Any], *, model_config: M
     batch_size = max(1, min(batch_size, len(trajectories)))
     out = []
     for start in range(0, len(trajectories), batch_size):
-        group = trajectories[start:start + batch_size]
+        group = trajectories[start : start + batch_size]
         filled = group + [group[-1]] * (batch_size - len(group))
         position, radius, mask = _padded(filled, c, budget, model_config.dim)
         last = [0]
@@ -86,17 +93,27 @@ def predict_trajectories(params, trajectories: Sequence[Any], *, model_config: M
                 progress(len(group) * (done - last[0]))
             last[0] = done
 
-        predicted = np.asarray(rollout_batch(params, position, radius, frames - c, model_config=model_config,
-                                             mask=mask, progress=step_progress))
+        predicted = np.asarray(
+            rollout_batch(
+                params, position, radius, frames - c, model_config=model_config, mask=mask, progress=step_progress
+            )
+        )
         for k, traj in enumerate(group):
             n = traj.position.shape[1]
             out.append(np.concatenate([np.asarray(traj.position[:c], np.float32), predicted[k, :, :n]], axis=0))
     return out
 
 
-def chaos_floor_trajectories(trajectories: Sequence[Any], physics_config: PhysicsConfig, *, n_frames: int,
-                             save_every: int, seed: int = 0, perturbation: float = CHAOS_PERTURBATION,
-                             x64: bool = False) -> list[np.ndarray]:
+def chaos_floor_trajectories(
+    trajectories: Sequence[Any],
+    physics_config: PhysicsConfig,
+    *,
+    n_frames: int,
+    save_every: int,
+    seed: int = 0,
+    perturbation: float = CHAOS_PERTURBATION,
+    x64: bool = False,
+) -> list[np.ndarray]:
     """The ground truth re-run from each trajectory's perturbed initial state, in one batched simulation.
 
     Args:
@@ -127,25 +144,46 @@ def chaos_floor_trajectories(trajectories: Sequence[Any], physics_config: Physic
         for k, traj in enumerate(trajectories):
             n = traj.initial_position.shape[0]
             key = jax.random.fold_in(jax.random.PRNGKey(seed), k)
-            shifted = perturb_positions(key, jnp.asarray(traj.initial_position, dtype),
-                                        jnp.asarray(traj.initial_radius, dtype), physics_config,
-                                        perturbation=perturbation)
+            shifted = perturb_positions(
+                key,
+                jnp.asarray(traj.initial_position, dtype),
+                jnp.asarray(traj.initial_radius, dtype),
+                physics_config,
+                perturbation=perturbation,
+            )
             x0[k, :n] = np.asarray(shifted)
             v0[k, :n] = traj.initial_velocity
             radius[k, :n] = traj.initial_radius
             mask[k, :n] = True
             # Padding rows: parked where the physics puts them; they never touch real particles.
-        frames = simulate_batch(jnp.asarray(x0, dtype), jnp.asarray(v0, dtype), jnp.asarray(radius, dtype),
-                                jnp.asarray(mask), physics_config, n_frames=n_frames, save_every=save_every)
+        frames = simulate_batch(
+            jnp.asarray(x0, dtype),
+            jnp.asarray(v0, dtype),
+            jnp.asarray(radius, dtype),
+            jnp.asarray(mask),
+            physics_config,
+            n_frames=n_frames,
+            save_every=save_every,
+        )
         frames = np.asarray(frames)
-    return [frames[k, :, :t.initial_position.shape[0]] / half for k, t in enumerate(trajectories)]
+    return [frames[k, :, : t.initial_position.shape[0]] / half for k, t in enumerate(trajectories)]
 
 
-def evaluate_trajectories(params, trajectories: Sequence[Any], *, model_config: ModelConfig, box_half_size: float,
-                          frame_dt: float, physics_config: PhysicsConfig | None = None, save_every: int = 15,
-                          chaos_floor: bool = True, chaos_x64: bool = False, n_frames: int | None = None,
-                          batch_size: int = 6, progress: Callable[[str, int], None] | None = None
-                          ) -> dict[str, Any]:
+def evaluate_trajectories(
+    params,
+    trajectories: Sequence[Any],
+    *,
+    model_config: ModelConfig,
+    box_half_size: float,
+    frame_dt: float,
+    physics_config: PhysicsConfig | None = None,
+    save_every: int = 15,
+    chaos_floor: bool = True,
+    chaos_x64: bool = False,
+    n_frames: int | None = None,
+    batch_size: int = 6,
+    progress: Callable[[str, int], None] | None = None,
+) -> dict[str, Any]:
     """Roll out and score every trajectory of a split.
 
     Args:
@@ -171,19 +209,33 @@ def evaluate_trajectories(params, trajectories: Sequence[Any], *, model_config: 
     trajectories = list(trajectories)
     report = progress or (lambda stage, amount: None)
     frames = min(t.position.shape[0] for t in trajectories) if n_frames is None else int(n_frames)
-    predictions = predict_trajectories(params, trajectories, model_config=model_config, n_frames=frames,
-                                       batch_size=batch_size, progress=lambda steps: report("rollout", steps))
+    predictions = predict_trajectories(
+        params,
+        trajectories,
+        model_config=model_config,
+        n_frames=frames,
+        batch_size=batch_size,
+        progress=lambda steps: report("rollout", steps),
+    )
     with_chaos = chaos_floor and all(getattr(t, "initial_position", None) is not None for t in trajectories)
     chaos = [None] * len(trajectories)
     if with_chaos:
-        chaos = chaos_floor_trajectories(trajectories, physics_config, n_frames=frames, save_every=save_every,
-                                         x64=chaos_x64)
+        chaos = chaos_floor_trajectories(
+            trajectories, physics_config, n_frames=frames, save_every=save_every, x64=chaos_x64
+        )
         report("chaos", len(trajectories))
     metrics = []
     for traj, predicted, floor in zip(trajectories, predictions, chaos):
-        metrics.append(rollout_metrics(predicted, np.asarray(traj.position[:frames], np.float32),
-                                       np.asarray(traj.radius, np.float32), box_half_size=box_half_size,
-                                       input_frames=model_config.input_sequence_length, frame_dt=frame_dt,
-                                       chaos_floor=None if floor is None else np.asarray(floor, np.float32),
-                                       physics_config=physics_config))
+        metrics.append(
+            rollout_metrics(
+                predicted,
+                np.asarray(traj.position[:frames], np.float32),
+                np.asarray(traj.radius, np.float32),
+                box_half_size=box_half_size,
+                input_frames=model_config.input_sequence_length,
+                frame_dt=frame_dt,
+                chaos_floor=None if floor is None else np.asarray(floor, np.float32),
+                physics_config=physics_config,
+            )
+        )
     return {"predictions": predictions, "metrics": metrics, "summary": summarize(metrics), "chaos_floor": with_chaos}

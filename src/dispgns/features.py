@@ -56,8 +56,9 @@ def _safe_norm(x: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
 
 
-def node_features(position_seq: jnp.ndarray, radius: jnp.ndarray, *, bounds=graph_lib.DEFAULT_BOUNDS,
-                  boundary_clip: float = 4.0) -> jnp.ndarray:
+def node_features(
+    position_seq: jnp.ndarray, radius: jnp.ndarray, *, bounds=graph_lib.DEFAULT_BOUNDS, boundary_clip: float = 4.0
+) -> jnp.ndarray:
     """Node features of the paper.
 
     Args:
@@ -78,8 +79,9 @@ def node_features(position_seq: jnp.ndarray, radius: jnp.ndarray, *, bounds=grap
     return jnp.concatenate([vel, walls, radius[:, None]], axis=-1)
 
 
-def edge_features(position_seq: jnp.ndarray, radius: jnp.ndarray, senders: jnp.ndarray,
-                  receivers: jnp.ndarray) -> jnp.ndarray:
+def edge_features(
+    position_seq: jnp.ndarray, radius: jnp.ndarray, senders: jnp.ndarray, receivers: jnp.ndarray
+) -> jnp.ndarray:
     """Edge features of ``s -> r`` for every edge.
 
     Args:
@@ -93,8 +95,7 @@ def edge_features(position_seq: jnp.ndarray, radius: jnp.ndarray, senders: jnp.n
     """
     c, n, d = position_seq.shape
     # Gather one row per endpoint: [x_last, v_1 .. v_{C-1}, a].
-    per_node = jnp.concatenate(
-        [position_seq[-1], _time_major(velocities(position_seq)), radius[:, None]], axis=-1)
+    per_node = jnp.concatenate([position_seq[-1], _time_major(velocities(position_seq)), radius[:, None]], axis=-1)
     s = jnp.take(per_node, senders, axis=0, mode="clip")
     r = jnp.take(per_node, receivers, axis=0, mode="clip")
     a_sum = s[:, -1] + r[:, -1]
@@ -104,8 +105,14 @@ def edge_features(position_seq: jnp.ndarray, radius: jnp.ndarray, senders: jnp.n
     return jnp.concatenate([rel, _safe_norm(rel)[:, None], rel_vel, a_sum[:, None]], axis=-1)
 
 
-def graph_features(position_seq, radius, *, bounds=graph_lib.DEFAULT_BOUNDS, connectivity_radius: float = 0.2,
-                   boundary_clip: float = 4.0):
+def graph_features(
+    position_seq,
+    radius,
+    *,
+    bounds=graph_lib.DEFAULT_BOUNDS,
+    connectivity_radius: float = 0.2,
+    boundary_clip: float = 4.0,
+):
     """Node features, edge features and edges of one configuration, padding removed.
 
     A convenience for inspection and tests; it needs concrete arrays (the
@@ -126,12 +133,15 @@ def graph_features(position_seq, radius, *, bounds=graph_lib.DEFAULT_BOUNDS, con
         position_seq = position_seq.astype(jnp.float32)
     radius = jnp.asarray(radius, position_seq.dtype)
     if position_seq.ndim != 3 or radius.shape != position_seq.shape[1:2]:
-        raise ValueError(f"expected position_seq (C, N, D) and radius (N,), got {position_seq.shape} and {radius.shape}")
+        raise ValueError(
+            f"expected position_seq (C, N, D) and radius (N,), got {position_seq.shape} and {radius.shape}"
+        )
     n = position_seq.shape[1]
     bounds = graph_lib.as_bounds(bounds, position_seq.shape[2])
     # On the capacity ladder: calls on other frames mostly reuse the compiled graph builder.
-    capacity = graph_lib.on_ladder(graph_lib.capacity_for(position_seq[-1], connectivity_radius=connectivity_radius,
-                                                          bounds=bounds), n)
+    capacity = graph_lib.on_ladder(
+        graph_lib.capacity_for(position_seq[-1], connectivity_radius=connectivity_radius, bounds=bounds), n
+    )
     g = _graph_jit(position_seq[-1], connectivity_radius, capacity, bounds)
     while bool(g.overflow):
         capacity = graph_lib.on_ladder(graph_lib.grow_capacity(capacity, n), n)
@@ -153,5 +163,6 @@ def _features_jit(position_seq, radius, senders, receivers, bounds, boundary_cli
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3))
 def _graph_jit(position, connectivity_radius, capacity, bounds):
-    return graph_lib.radius_graph(position, None, connectivity_radius=connectivity_radius, capacity=capacity,
-                                  bounds=bounds)
+    return graph_lib.radius_graph(
+        position, None, connectivity_radius=connectivity_radius, capacity=capacity, bounds=bounds
+    )

@@ -36,7 +36,8 @@ import dataclasses
 import functools
 import math
 import warnings
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -113,8 +114,9 @@ def _grid(connectivity_radius: float, bounds: Bounds):
     return lo, extent, cells, extent / cells
 
 
-def park_padding(position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivity_radius: float,
-                 bounds: Bounds = DEFAULT_BOUNDS) -> jnp.ndarray:
+def park_padding(
+    position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS
+) -> jnp.ndarray:
     """Move padding particles onto a lattice far outside the box.
 
     Lattice points are at least two cells (two radii) apart and spread over
@@ -132,8 +134,10 @@ def park_padding(position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivit
     if mask is None:
         return position
     n, dim = position.shape[-2:]
-    parked = jnp.asarray(parking_lattice(n, dim, connectivity_radius=connectivity_radius, bounds=bounds),
-                         jax.dtypes.canonicalize_dtype(position.dtype))
+    parked = jnp.asarray(
+        parking_lattice(n, dim, connectivity_radius=connectivity_radius, bounds=bounds),
+        jax.dtypes.canonicalize_dtype(position.dtype),
+    )
     return jnp.where(jnp.asarray(mask)[..., None], position, parked)
 
 
@@ -171,7 +175,7 @@ def _quiet_x64_scatter():
         yield
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _neighbor_fns(connectivity_radius: float, bounds: Bounds, use_cells: bool):
     _, extent, _, _ = _grid(connectivity_radius, bounds)
     displacement, _ = space.free()
@@ -179,7 +183,7 @@ def _neighbor_fns(connectivity_radius: float, bounds: Bounds, use_cells: bool):
     # first call happens inside a trace (they are cached beyond it).
     with jax.ensure_compile_time_eval():
         return partition.neighbor_list(
-        displacement,
+            displacement,
             jnp.asarray(extent, jnp.float32),
             r_cutoff=connectivity_radius,
             dr_threshold=0.0,  # always rebuild: the graph is recomputed at every step
@@ -190,9 +194,10 @@ def _neighbor_fns(connectivity_radius: float, bounds: Bounds, use_cells: bool):
         )
 
 
-@functools.lru_cache(maxsize=None)
-def _base_template(dim: int, connectivity_radius: float, bounds: Bounds, use_cells: bool,
-                   x64: bool) -> partition.NeighborList:
+@functools.cache
+def _base_template(
+    dim: int, connectivity_radius: float, bounds: Bounds, use_cells: bool, x64: bool
+) -> partition.NeighborList:
     """A jax-md neighbour list allocated eagerly on a few far-apart points, once per setting.
 
     Only its static parts matter: with ``dr_threshold = 0`` an update rebuilds
@@ -212,15 +217,22 @@ def _base_template(dim: int, connectivity_radius: float, bounds: Bounds, use_cel
     return nbrs
 
 
-def _template(n: int, dim: int, connectivity_radius: float, bounds: Bounds, capacity: GraphCapacity,
-              x64: bool) -> partition.NeighborList:
+def _template(
+    n: int, dim: int, connectivity_radius: float, bounds: Bounds, capacity: GraphCapacity, x64: bool
+) -> partition.NeighborList:
     """A jax-md neighbour list with the requested static capacities."""
     base = _base_template(dim, connectivity_radius, bounds, capacity.cell is not None, x64)
     return dataclasses.replace(base, max_occupancy=int(capacity.edges) + n, cell_list_capacity=capacity.cell)
 
 
-def radius_graph(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, connectivity_radius: float,
-                 capacity: GraphCapacity, bounds: Bounds = DEFAULT_BOUNDS) -> Graph:
+def radius_graph(
+    position: jnp.ndarray,
+    mask: jnp.ndarray | None = None,
+    *,
+    connectivity_radius: float,
+    capacity: GraphCapacity,
+    bounds: Bounds = DEFAULT_BOUNDS,
+) -> Graph:
     """All ordered pairs with ``|x_s - x_r| < connectivity_radius``, self-loops included.
 
     Pure and jittable; vmap it over a leading batch axis for several graphs.
@@ -241,8 +253,7 @@ def radius_graph(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conn
     bounds = as_bounds(bounds, dim)
     x64 = position.dtype == jnp.float64
     template = _template(n, dim, float(connectivity_radius), bounds, capacity, x64)
-    parked = park_padding(jax.lax.stop_gradient(position), mask, connectivity_radius=connectivity_radius,
-                          bounds=bounds)
+    parked = park_padding(jax.lax.stop_gradient(position), mask, connectivity_radius=connectivity_radius, bounds=bounds)
     origin, _, _, _ = _grid(connectivity_radius, bounds)
     with _quiet_x64_scatter():
         nbrs = template.update(parked - jnp.asarray(origin, parked.dtype))
@@ -275,7 +286,7 @@ def count_pairs(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conne
     """
     x = jax.lax.stop_gradient(position)
     d2 = sum((x[..., :, None, d] - x[..., None, :, d]) ** 2 for d in range(x.shape[-1]))
-    close = d2 < connectivity_radius ** 2
+    close = d2 < connectivity_radius**2
     n = x.shape[-2]
     close = close & ~jnp.eye(n, dtype=bool)
     if mask is not None:
@@ -307,16 +318,15 @@ def host_count_pairs(position, mask=None, *, connectivity_radius: float) -> np.n
     m = x.shape[1]
     step = max(1, 4_000_000 // max(1, m * m))
     for start in range(0, x.shape[0], step):
-        block = x[start:start + step]
+        block = x[start : start + step]
         d2 = np.zeros(block.shape[:1] + (m, m))
         for d in range(dim):
             d2 += (block[:, :, None, d] - block[:, None, :, d]) ** 2
-        counts[start:start + step] = np.count_nonzero(d2 < r2, axis=(1, 2)) - m
+        counts[start : start + step] = np.count_nonzero(d2 < r2, axis=(1, 2)) - m
     return counts.reshape(lead)
 
 
-def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float,
-                            bounds: Bounds = DEFAULT_BOUNDS) -> int:
+def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> int:
     """Most particles in one cell of the cell list (padding parked as in :func:`radius_graph`).
 
     ``position``: concrete ``(N, D)`` or ``(T, N, D)`` (maximum over frames).
@@ -348,9 +358,15 @@ def round_capacity(count: int, *, margin: float = 0.05, minimum_extra: int = 32,
     return int(quantum * math.ceil(need / quantum))
 
 
-def capacity_for(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, connectivity_radius: float,
-                 bounds: Bounds = DEFAULT_BOUNDS, use_cell_list: bool | None = None,
-                 margin: float = 0.05) -> GraphCapacity:
+def capacity_for(
+    position: jnp.ndarray,
+    mask: jnp.ndarray | None = None,
+    *,
+    connectivity_radius: float,
+    bounds: Bounds = DEFAULT_BOUNDS,
+    use_cell_list: bool | None = None,
+    margin: float = 0.05,
+) -> GraphCapacity:
     """A :class:`GraphCapacity` that fits the graph of ``position`` with some margin (eager).
 
     Args:
@@ -367,7 +383,8 @@ def capacity_for(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conn
     pairs = int(np.max(host_count_pairs(frames, mask, connectivity_radius=connectivity_radius)))
     if use_cell_list is None:
         use_cell_list = n >= CELL_LIST_MIN_PARTICLES and cell_list_possible(
-            frames.shape[-1], connectivity_radius=connectivity_radius, bounds=bounds)
+            frames.shape[-1], connectivity_radius=connectivity_radius, bounds=bounds
+        )
     cell = None
     if use_cell_list:
         occupancy = host_max_cell_occupancy(frames, mask, connectivity_radius=connectivity_radius, bounds=bounds)

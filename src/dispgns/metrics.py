@@ -32,7 +32,8 @@ paper's number only under the explicit name ``mse_times_L_mm``.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -48,6 +49,7 @@ DEFAULT_HORIZONS: tuple[int, ...] = (1, 10, 50, 100)
 # ----------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------
+
 
 def _weights(mask, n: int, dtype) -> jnp.ndarray:
     """``(N,)`` float weights: 1 for real particles, 0 for padding."""
@@ -91,6 +93,7 @@ def _check_pair(prediction, truth, input_frames: int):
 # ----------------------------------------------------------------------------
 # position errors
 # ----------------------------------------------------------------------------
+
 
 def squared_error_per_frame(prediction, truth, mask=None) -> jnp.ndarray:
     """Mean squared position error of every frame.
@@ -224,6 +227,7 @@ def mse_times_L_mm(mse, box_half_size: float):
 # physical plausibility
 # ----------------------------------------------------------------------------
 
+
 def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None) -> jnp.ndarray:
     """Particles poking through a wall, per frame.
 
@@ -283,8 +287,9 @@ def overlap_counts(positions, radius, *, coeff: float = 1.75, mask=None) -> jnp.
     return lax.map(frame, positions)
 
 
-def kinetic_energy(positions, radius, *, box_half_size: float, frame_dt: float, mask=None,
-                   config: PhysicsConfig | None = None) -> jnp.ndarray:
+def kinetic_energy(
+    positions, radius, *, box_half_size: float, frame_dt: float, mask=None, config: PhysicsConfig | None = None
+) -> jnp.ndarray:
     """Total kinetic energy in joules from finite-difference velocities.
 
     The velocity at frame ``k >= 1`` is the backward difference
@@ -334,6 +339,7 @@ def mean_height(positions, mask=None) -> jnp.ndarray:
 # baselines
 # ----------------------------------------------------------------------------
 
+
 def constant_velocity_rollout(positions, *, input_frames: int = 6, n_frames: int | None = None) -> jnp.ndarray:
     """The constant-velocity baseline.
 
@@ -364,9 +370,20 @@ def constant_velocity_rollout(positions, *, input_frames: int = 6, n_frames: int
     return jnp.concatenate([positions[:input_frames], future], axis=0)
 
 
-def chaos_floor_rollout(initial_position, initial_velocity, radius, config: PhysicsConfig, *, key, n_frames: int,
-                        save_every: int = 15, perturbation: float = 1e-6, mask=None, x64: bool = True,
-                        **simulate_kwargs) -> np.ndarray:
+def chaos_floor_rollout(
+    initial_position,
+    initial_velocity,
+    radius,
+    config: PhysicsConfig,
+    *,
+    key,
+    n_frames: int,
+    save_every: int = 15,
+    perturbation: float = 1e-6,
+    mask=None,
+    x64: bool = True,
+    **simulate_kwargs,
+) -> np.ndarray:
     """Re-run the ground truth from a slightly perturbed initial state.
 
     The suspension is chaotic: two exact simulations whose initial positions
@@ -413,13 +430,15 @@ def chaos_floor_rollout(initial_position, initial_velocity, radius, config: Phys
                 f"{x0.shape}, {v0.shape} and {a.shape}"
             )
         shifted = perturb_positions(key, x0, a, config, perturbation=perturbation, mask=mask)
-        frames = simulate(shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask,
-                          **simulate_kwargs)
+        frames = simulate(
+            shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask, **simulate_kwargs
+        )
         return np.asarray(frames) / half
 
 
-def perturb_positions(key, initial_position, radius, config: PhysicsConfig, *, perturbation: float = 1e-6,
-                      mask=None) -> jnp.ndarray:
+def perturb_positions(
+    key, initial_position, radius, config: PhysicsConfig, *, perturbation: float = 1e-6, mask=None
+) -> jnp.ndarray:
     """Initial centres shifted by independent normal draws of std ``perturbation * L`` (the chaos floor's start).
 
     Shifted centres are kept inside the wall contact positions ``[-L + a_i,
@@ -453,6 +472,7 @@ def perturb_positions(key, initial_position, radius, config: PhysicsConfig, *, p
 # reports
 # ----------------------------------------------------------------------------
 
+
 def _floats(values) -> list[float]:
     return [float(v) for v in np.asarray(values, np.float64).ravel()]
 
@@ -467,8 +487,20 @@ def _ints(values) -> list[int]:
 _PARTICLE_BUCKET = 32
 
 
-def _metric_arrays(prediction, truth, chaos, radius, mask, *, input_frames, box_half_size, frame_dt,
-                   wall_tolerance, overlap_coeff, config):
+def _metric_arrays(
+    prediction,
+    truth,
+    chaos,
+    radius,
+    mask,
+    *,
+    input_frames,
+    box_half_size,
+    frame_dt,
+    wall_tolerance,
+    overlap_coeff,
+    config,
+):
     """Every per-frame array of :func:`rollout_metrics`, in one XLA program."""
     c = input_frames
     energy = dict(box_half_size=box_half_size, frame_dt=frame_dt, mask=mask, config=config)
@@ -481,8 +513,8 @@ def _metric_arrays(prediction, truth, chaos, radius, mask, *, input_frames, box_
         "overlaps": overlap_counts(prediction[c:], radius, coeff=overlap_coeff, mask=mask),
         "overlaps_truth": overlap_counts(truth[c:], radius, coeff=overlap_coeff, mask=mask),
         # kinetic_energy's entry k - 1 is frame k: keep frames c .. T-1.
-        "ke_pred": kinetic_energy(prediction, radius, **energy)[c - 1:],
-        "ke_true": kinetic_energy(truth, radius, **energy)[c - 1:],
+        "ke_pred": kinetic_energy(prediction, radius, **energy)[c - 1 :],
+        "ke_true": kinetic_energy(truth, radius, **energy)[c - 1 :],
         "height_pred": mean_height(prediction[c:], mask),
         "height_true": mean_height(truth[c:], mask),
         "finite": jnp.all(jnp.isfinite(prediction[c:]) | ~mask[None, :, None]),
@@ -642,14 +674,14 @@ def rollout_metrics(
     out.update(_error_family("", arrays["curve"], mean_diameter, box_half_size, horizons))
     out["mse_times_L_mm"] = out["mse"] * box_half_size * 1e3
 
-    out.update(_error_family("constant_velocity_", arrays["constant_velocity_curve"], mean_diameter,
-                             box_half_size, horizons))
+    out.update(
+        _error_family("constant_velocity_", arrays["constant_velocity_curve"], mean_diameter, box_half_size, horizons)
+    )
     baseline_mse = out["constant_velocity_mse"]
     out["mse_over_constant_velocity"] = out["mse"] / baseline_mse if baseline_mse > 0 else float("nan")
 
     if chaos_floor is not None:
-        out.update(_error_family("chaos_floor_", arrays["chaos_floor_curve"], mean_diameter, box_half_size,
-                                 horizons))
+        out.update(_error_family("chaos_floor_", arrays["chaos_floor_curve"], mean_diameter, box_half_size, horizons))
 
     walls, overlaps, overlaps_truth = arrays["walls"], arrays["overlaps"], arrays["overlaps_truth"]
     out["wall_violations_per_frame"] = _ints(walls)
@@ -719,6 +751,9 @@ def summarize(metrics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         elif values and all(isinstance(v, (list, tuple)) and all(_is_number(x) for x in v) for v in values):
             length = min(len(v) for v in values)
             array = np.asarray([list(v)[:length] for v in values], np.float64).reshape(len(values), length)
-            out[key] = {"mean": _floats(np.mean(array, axis=0)), "std": _floats(np.std(array, axis=0)),
-                        "n": len(values)}
+            out[key] = {
+                "mean": _floats(np.mean(array, axis=0)),
+                "std": _floats(np.std(array, axis=0)),
+                "n": len(values),
+            }
     return out

@@ -34,7 +34,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -111,11 +112,14 @@ class ModelConfig:
         if self.activation not in _ACTIVATIONS:
             raise ValueError(f"ModelConfig.activation must be one of {sorted(_ACTIVATIONS)}, got {self.activation!r}")
         if self.matmul_dtype not in _MATMUL_DTYPES:
-            raise ValueError(f"ModelConfig.matmul_dtype must be one of {sorted(_MATMUL_DTYPES)}, "
-                             f"got {self.matmul_dtype!r}")
+            raise ValueError(
+                f"ModelConfig.matmul_dtype must be one of {sorted(_MATMUL_DTYPES)}, got {self.matmul_dtype!r}"
+            )
         if not (self.connectivity_radius > 0) or not (self.boundary_clip > 0):
-            raise ValueError("ModelConfig.connectivity_radius and boundary_clip must be > 0, got "
-                             f"{self.connectivity_radius!r} and {self.boundary_clip!r}")
+            raise ValueError(
+                "ModelConfig.connectivity_radius and boundary_clip must be > 0, got "
+                f"{self.connectivity_radius!r} and {self.boundary_clip!r}"
+            )
         # Normalise lists (e.g. from YAML/JSON) into the hashable tuple form.
         bounds = ((-1.0, 1.0),) * int(self.dim) if self.bounds is None else self.bounds
         object.__setattr__(self, "bounds", as_bounds(bounds, self.dim))
@@ -134,7 +138,7 @@ class ModelConfig:
         return values
 
     @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> "ModelConfig":
+    def from_dict(cls, values: Mapping[str, Any]) -> ModelConfig:
         """Build a config from a mapping (numbers may be given as text); unknown keys are an error."""
         values = dict(values)
         if values.get("bounds") is not None:
@@ -168,8 +172,12 @@ def _matmul_bf16_bwd(residuals, dy):
     dx = jnp.dot(gb, kernel_t, preferred_element_type=jnp.float32)
     rows = xb.shape[0]
     chunks = _row_chunks(rows)
-    dk = jnp.einsum("cri,cro->io", xb.reshape(chunks, rows // chunks, -1), gb.reshape(chunks, rows // chunks, -1),
-                    preferred_element_type=jnp.float32)
+    dk = jnp.einsum(
+        "cri,cro->io",
+        xb.reshape(chunks, rows // chunks, -1),
+        gb.reshape(chunks, rows // chunks, -1),
+        preferred_element_type=jnp.float32,
+    )
     # dy has x's dtype (the forward casts its result to it).
     return dx.astype(dy.dtype), dk.astype(kernel.dtype)
 
@@ -193,8 +201,9 @@ class Linear(nn.Module):
             return jnp.dot(x, kernel)
         if x.ndim == 2:
             return _matmul_bf16(x, kernel)
-        return jnp.dot(x.astype(self.matmul_dtype), kernel.astype(self.matmul_dtype),
-                       preferred_element_type=jnp.float32).astype(x.dtype)
+        return jnp.dot(
+            x.astype(self.matmul_dtype), kernel.astype(self.matmul_dtype), preferred_element_type=jnp.float32
+        ).astype(x.dtype)
 
     def __call__(self, x):
         return self.dot(x, self.kernel) + self.bias
@@ -293,8 +302,9 @@ class MLP(nn.Module):
 
     def setup(self):
         sizes = (self.in_features,) + tuple(self.hidden) + (self.out_features,)
-        self.layers = [Linear(sizes[k], sizes[k + 1], self.matmul_dtype, name=f"Dense_{k}")
-                       for k in range(len(sizes) - 1)]
+        self.layers = [
+            Linear(sizes[k], sizes[k + 1], self.matmul_dtype, name=f"Dense_{k}") for k in range(len(sizes) - 1)
+        ]
         if self.layer_norm:
             self.norm = LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
 
@@ -342,10 +352,13 @@ class InteractionBlock(nn.Module):
         kernel = first.kernel
         # [x_i, x_j, e_ij] @ W = (x W_i)[i] + (x W_j)[j] + e W_e: node parts once per node.
         at_receiver = first.dot(nodes, kernel[:width])
-        at_sender = first.dot(nodes, kernel[width:2 * width])
-        h = (at_receiver.at[gather_receivers].get(indices_are_sorted=True, mode="promise_in_bounds")
-             + at_sender.at[gather_senders].get(mode="promise_in_bounds")
-             + first.dot(edges, kernel[2 * width:]) + first.bias)
+        at_sender = first.dot(nodes, kernel[width : 2 * width])
+        h = (
+            at_receiver.at[gather_receivers].get(indices_are_sorted=True, mode="promise_in_bounds")
+            + at_sender.at[gather_senders].get(mode="promise_in_bounds")
+            + first.dot(edges, kernel[2 * width :])
+            + first.bias
+        )
         messages = self.message.after_first(h)
         summed = jax.ops.segment_sum(messages, scatter_receivers, num_segments=nodes.shape[0], indices_are_sorted=True)
         nodes = nodes + self.node_2(self.node(jnp.concatenate([summed, nodes], axis=-1)))
@@ -405,8 +418,10 @@ def init_params(key: jax.Array, model_config: ModelConfig, normalization: Mappin
     c = model_config
     variables = _init_network(key, c)
     norm = identity_normalization(c.dim) if normalization is None else normalization
-    norm = {k: jnp.asarray(norm[k], jnp.float32) for k in ("velocity_mean", "velocity_std", "acceleration_mean",
-                                                           "acceleration_std")}
+    norm = {
+        k: jnp.asarray(norm[k], jnp.float32)
+        for k in ("velocity_mean", "velocity_std", "acceleration_mean", "acceleration_std")
+    }
     for k, v in norm.items():
         if v.shape != (c.dim,):
             raise ValueError(f"normalization[{k!r}] must have shape ({c.dim},), got {v.shape}")
@@ -439,7 +454,7 @@ def _init_network(key, config: ModelConfig):
         name = path[-1].key
         if name == "kernel":
             size = int(np.prod(leaf.shape))
-            leaves.append((draws[offset:offset + size] / np.sqrt(leaf.shape[0])).reshape(leaf.shape))
+            leaves.append((draws[offset : offset + size] / np.sqrt(leaf.shape[0])).reshape(leaf.shape))
             offset += size
         elif name == "scale":
             leaves.append(jnp.ones(leaf.shape, leaf.dtype))
@@ -448,8 +463,15 @@ def _init_network(key, config: ModelConfig):
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
-def apply_network(network_params, node_features: jnp.ndarray, edge_features: jnp.ndarray, senders: jnp.ndarray,
-                  receivers: jnp.ndarray, *, model_config: ModelConfig) -> jnp.ndarray:
+def apply_network(
+    network_params,
+    node_features: jnp.ndarray,
+    edge_features: jnp.ndarray,
+    senders: jnp.ndarray,
+    receivers: jnp.ndarray,
+    *,
+    model_config: ModelConfig,
+) -> jnp.ndarray:
     """The raw network on one graph.
 
     Args:
@@ -463,8 +485,9 @@ def apply_network(network_params, node_features: jnp.ndarray, edge_features: jnp
     Returns:
       ``(N, D)`` standardised acceleration / radius.
     """
-    return EncodeProcessDecode(model_config).apply({"params": network_params}, node_features, edge_features,
-                                                   senders, receivers)
+    return EncodeProcessDecode(model_config).apply(
+        {"params": network_params}, node_features, edge_features, senders, receivers
+    )
 
 
 def count_parameters(tree) -> int:

@@ -20,7 +20,8 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -38,6 +39,7 @@ _PAD = 0.04  # margin around the box, in box units
 # ----------------------------------------------------------------------------
 # files
 # ----------------------------------------------------------------------------
+
 
 def _atomic_write(path, write: Callable[[str], None]) -> str:
     """Call ``write(tmp)`` on a temporary path next to ``path``, then rename it.
@@ -93,6 +95,7 @@ def ffmpeg_executable() -> str | None:
 # particles
 # ----------------------------------------------------------------------------
 
+
 def _prepare(trajectories: Sequence[Any], radius, mask):
     """Numpy copies with padding particles removed; checks shapes."""
     radius = np.asarray(radius, np.float64)
@@ -145,8 +148,17 @@ def _particles(ax, positions, radius, colour_values, norm, cmap) -> EllipseColle
     """Circles of diameter ``2 a`` in data units (``units="xy"``), coloured by radius."""
     diameters = 2.0 * radius
     collection = EllipseCollection(
-        diameters, diameters, np.zeros_like(diameters), units="xy", offsets=positions,
-        offset_transform=ax.transData, cmap=cmap, norm=norm, edgecolors="black", linewidths=0.3, zorder=2,
+        diameters,
+        diameters,
+        np.zeros_like(diameters),
+        units="xy",
+        offsets=positions,
+        offset_transform=ax.transData,
+        cmap=cmap,
+        norm=norm,
+        edgecolors="black",
+        linewidths=0.3,
+        zorder=2,
     )
     collection.set_array(colour_values)
     ax.add_collection(collection)
@@ -246,8 +258,16 @@ def rollout_animation(
     trajectories, labels = _panels(truth, prediction, titles)
     trajectories, radius = _prepare(trajectories, radius, mask)
     frames = _frame_indices(trajectories[0].shape[0], start, stop, stride)
-    scene = _Scene(list(zip(labels, trajectories)), radius, frame_dt=frame_dt, input_frames=input_frames,
-                   box_half_size=box_half_size, cmap=cmap, figsize=figsize, dpi=dpi)
+    scene = _Scene(
+        list(zip(labels, trajectories)),
+        radius,
+        frame_dt=frame_dt,
+        input_frames=input_frames,
+        box_half_size=box_half_size,
+        cmap=cmap,
+        figsize=figsize,
+        dpi=dpi,
+    )
     anim = animation.FuncAnimation(scene.fig, scene.update, frames=frames, interval=1000.0 / fps, blit=False)
     return scene.fig, anim
 
@@ -268,8 +288,7 @@ def _write_gif(scene: _Scene, frames: Sequence[int], path: str, fps: float) -> N
     # so a 500-frame rollout does not sit in memory as RGBA.
     images = (Image.fromarray(rgb).quantize(colors=256) for rgb in _rgb_frames(scene, frames))
     first = next(images)
-    first.save(path, format="GIF", save_all=True, append_images=images, duration=int(round(1000.0 / fps)),
-               loop=0)
+    first.save(path, format="GIF", save_all=True, append_images=images, duration=int(round(1000.0 / fps)), loop=0)
 
 
 def _write_mp4(scene: _Scene, frames: Sequence[int], path: str, fps: float, ffmpeg: str) -> None:
@@ -323,8 +342,16 @@ def save_rollout_animation(
     trajectories, labels = _panels(truth, prediction, titles)
     trajectories, radius = _prepare(trajectories, radius, mask)
     frames = _frame_indices(trajectories[0].shape[0], start, stop, stride)
-    scene = _Scene(list(zip(labels, trajectories)), radius, frame_dt=frame_dt, input_frames=input_frames,
-                   box_half_size=box_half_size, cmap=cmap, figsize=figsize, dpi=dpi)
+    scene = _Scene(
+        list(zip(labels, trajectories)),
+        radius,
+        frame_dt=frame_dt,
+        input_frames=input_frames,
+        box_half_size=box_half_size,
+        cmap=cmap,
+        figsize=figsize,
+        dpi=dpi,
+    )
     result: dict[str, Any] = {"gif": None, "mp4": None, "frames": len(frames), "mp4_skipped": None}
     result["gif"] = _atomic_write(base + ".gif", lambda tmp: _write_gif(scene, frames, tmp, fps))
     if not mp4:
@@ -406,6 +433,7 @@ def frame_grid(
 # curves
 # ----------------------------------------------------------------------------
 
+
 def _positive(values) -> np.ndarray:
     """Float array with non-positive and non-finite entries hidden (log axes)."""
     values = np.asarray(values, np.float64)
@@ -453,8 +481,9 @@ def plot_error_curves(
         x = steps * frame_dt if frame_dt is not None else steps
         (line,) = ax.plot(x, _positive(mean), label=label)
         if std is not None and std.size == mean.size:
-            ax.fill_between(x, _positive(mean - std), _positive(mean + std), color=line.get_color(), alpha=0.2,
-                            linewidth=0)
+            ax.fill_between(
+                x, _positive(mean - std), _positive(mean + std), color=line.get_color(), alpha=0.2, linewidth=0
+            )
     ax.set_yscale("log")
     ax.set_xlabel("time after the last input frame (s)" if frame_dt is not None else "model steps")
     ax.set_ylabel(ylabel)
@@ -468,8 +497,9 @@ def plot_error_curves(
     return fig
 
 
-def plot_rollout_errors(metrics: Mapping[str, Any], *, frame_dt: float | None = None, title: str | None = None,
-                        path=None, **kwargs) -> Figure:
+def plot_rollout_errors(
+    metrics: Mapping[str, Any], *, frame_dt: float | None = None, title: str | None = None, path=None, **kwargs
+) -> Figure:
     """Model vs. constant velocity vs. chaos floor from a metrics dict.
 
     Args:
@@ -503,7 +533,8 @@ def plot_training_curve(
     steps: Sequence[float],
     loss: Sequence[float],
     *,
-    validation: Mapping[str, tuple[Sequence[float], Sequence[float]]] | tuple[Sequence[float], Sequence[float]]
+    validation: Mapping[str, tuple[Sequence[float], Sequence[float]]]
+    | tuple[Sequence[float], Sequence[float]]
     | None = None,
     smooth: int = 0,
     logy: bool = True,

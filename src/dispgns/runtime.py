@@ -75,7 +75,7 @@ def tune_host_allocator(keep_free_bytes: int = 1 << 30, *, warn_if_late: bool = 
       ``True`` if the settings were applied (now or by an earlier call).
     """
     global _tuned
-    if not 0 < keep_free_bytes < 2 ** 31:
+    if not 0 < keep_free_bytes < 2**31:
         raise ValueError(f"keep_free_bytes must be in (0, 2**31), got {keep_free_bytes!r}")
     if _tuned:
         return True
@@ -89,12 +89,18 @@ def tune_host_allocator(keep_free_bytes: int = 1 << 30, *, warn_if_late: bool = 
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     late = _jax_backends_initialized()
-    applied = all(mallopt(param, value) == 1 for param, value in (
-        (_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, int(keep_free_bytes))))
+    applied = all(
+        mallopt(param, value) == 1
+        for param, value in ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, int(keep_free_bytes)))
+    )
     if applied and late and warn_if_late:
-        warnings.warn("dispgns.tune_host_allocator() called after JAX started its CPU backend: threads that "
-                      "already allocated keep their own arenas, so the speed-up may be partial. Call it "
-                      "before the first JAX computation.", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            "dispgns.tune_host_allocator() called after JAX started its CPU backend: threads that "
+            "already allocated keep their own arenas, so the speed-up may be partial. Call it "
+            "before the first JAX computation.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     _tuned = applied
     return applied
 
@@ -156,12 +162,13 @@ def network_compiler_options(model_config=None) -> dict[str, str]:
 def _outside_transformations() -> bool:
     try:
         from jax._src import core
+
         return bool(core.trace_state_clean())
     except (ImportError, AttributeError):  # jax's private layout changed: the options are left out
         return False
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _known_options(items: tuple[tuple[str, object], ...]) -> tuple[tuple[str, object], ...]:
     """``items`` without the options this jaxlib refuses (a warning names each one).
 
@@ -175,9 +182,12 @@ def _known_options(items: tuple[tuple[str, object], ...]) -> tuple[tuple[str, ob
         try:
             jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(1.0).compile()
         except Exception as error:  # XLA raises its own runtime error types
-            warnings.warn(f"dispgns: this jaxlib ({jax.__version__}) refuses the XLA option {name}={value!r} "
-                          f"({error}); compiling without it (same results, perhaps slower)", RuntimeWarning,
-                          stacklevel=4)
+            warnings.warn(
+                f"dispgns: this jaxlib ({jax.__version__}) refuses the XLA option {name}={value!r} "
+                f"({error}); compiling without it (same results, perhaps slower)",
+                RuntimeWarning,
+                stacklevel=4,
+            )
             continue
         kept.append((name, value))
     return tuple(kept)
@@ -246,8 +256,10 @@ def network_jit(fun=None, *, config_arg: str = "model_config", **jit_kwargs):
         return functools.partial(network_jit, config_arg=config_arg, **jit_kwargs)
     signature = inspect.signature(fun)
     if config_arg not in signature.parameters:
-        raise ValueError(f"network_jit: {fun.__qualname__} has no parameter {config_arg!r} "
-                         f"(parameters: {list(signature.parameters)})")
+        raise ValueError(
+            f"network_jit: {fun.__qualname__} has no parameter {config_arg!r} "
+            f"(parameters: {list(signature.parameters)})"
+        )
 
     def options(*args, **kwargs):
         bound = signature.bind(*args, **kwargs)  # a TypeError for a call that lacks arguments, as Python's own

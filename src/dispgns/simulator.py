@@ -85,8 +85,10 @@ def _check(position, radius, mask, model_config: ModelConfig, *, leading: int):
     radius = _keep_concrete(radius, position.dtype)
     c, d = model_config.input_sequence_length, model_config.dim
     if position.ndim != 3 or position.shape[0] != leading or position.shape[2] != d:
-        raise ValueError(f"positions must have shape ({leading}, N, {d}) (C = input_sequence_length = {c}, "
-                         f"D = dim), got {position.shape}")
+        raise ValueError(
+            f"positions must have shape ({leading}, N, {d}) (C = input_sequence_length = {c}, "
+            f"D = dim), got {position.shape}"
+        )
     n = position.shape[1]
     if radius.shape != (n,):
         raise ValueError(f"radius must have shape ({n},), got {radius.shape}")
@@ -107,8 +109,10 @@ def _check_radius(radius, mask):
     real = np.asarray(radius)[np.asarray(mask, bool)]
     bad = ~(np.isfinite(real) & (real > 0))
     if np.any(bad):
-        raise ValueError(f"radius must be finite and > 0 for every real particle; got {real[bad][:5].tolist()} "
-                         f"({int(bad.sum())} bad value(s))")
+        raise ValueError(
+            f"radius must be finite and > 0 for every real particle; got {real[bad][:5].tolist()} "
+            f"({int(bad.sum())} bad value(s))"
+        )
 
 
 def _check_steps(n_steps):
@@ -118,21 +122,27 @@ def _check_steps(n_steps):
 
 def sanitize(position_seq: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray, model_config: ModelConfig):
     """Padding rows replaced by parked positions and unit radii (finite features, no edges to real particles)."""
-    position_seq = graph_lib.park_padding(position_seq, mask, connectivity_radius=model_config.connectivity_radius,
-                                          bounds=model_config.bounds)
+    position_seq = graph_lib.park_padding(
+        position_seq, mask, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds
+    )
     radius = jnp.where(mask, radius, jnp.ones_like(radius))
     return position_seq, radius
 
 
-def build_graph(position: jnp.ndarray, mask: jnp.ndarray, capacity: GraphCapacity,
-                model_config: ModelConfig) -> Graph:
+def build_graph(position: jnp.ndarray, mask: jnp.ndarray, capacity: GraphCapacity, model_config: ModelConfig) -> Graph:
     """The radius graph of ``position`` ``(N, D)`` for ``model_config`` (see :func:`dispgns.graph.radius_graph`)."""
-    return graph_lib.radius_graph(position, mask, connectivity_radius=model_config.connectivity_radius,
-                                  capacity=capacity, bounds=model_config.bounds)
+    return graph_lib.radius_graph(
+        position,
+        mask,
+        connectivity_radius=model_config.connectivity_radius,
+        capacity=capacity,
+        bounds=model_config.bounds,
+    )
 
 
-def network_output(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph: Graph, *,
-                   model_config: ModelConfig) -> jnp.ndarray:
+def network_output(
+    params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph: Graph, *, model_config: ModelConfig
+) -> jnp.ndarray:
     """Standardised network output ``(N, D)`` for sanitised inputs and a graph (what the loss compares).
 
     Args:
@@ -187,8 +197,15 @@ def merge_graphs(graphs: Graph, n: int, edge_budget: int | None = None):
     return compact(senders), compact(receivers)
 
 
-def network_output_batch(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graphs: Graph, *,
-                         model_config: ModelConfig, edge_budget: int | None = None) -> jnp.ndarray:
+def network_output_batch(
+    params,
+    position_seq: jnp.ndarray,
+    radius: jnp.ndarray,
+    graphs: Graph,
+    *,
+    model_config: ModelConfig,
+    edge_budget: int | None = None,
+) -> jnp.ndarray:
     """:func:`network_output` for ``B`` examples at once, as one disjoint graph.
 
     Merging the examples (rather than vmapping the network) keeps gathers
@@ -216,8 +233,7 @@ def network_output_batch(params, position_seq: jnp.ndarray, radius: jnp.ndarray,
     flat_x = jnp.moveaxis(flat_x, 1, 0).reshape(steps, b * (n + 1), dim)
     flat_a = jnp.concatenate([radius, jnp.ones((b, 1), radius.dtype)], axis=1).reshape(b * (n + 1))
     edges = features_lib.edge_features(flat_x, flat_a, senders, receivers)
-    out = apply_network(params["network"], nodes.reshape(b * (n + 1), -1), edges, senders, receivers,
-                        model_config=c)
+    out = apply_network(params["network"], nodes.reshape(b * (n + 1), -1), edges, senders, receivers, model_config=c)
     return out.reshape(b, n + 1, -1)[:, :n]
 
 
@@ -275,24 +291,27 @@ def _full_capacity(n: int) -> GraphCapacity:
 
 
 def _predict(params, position_seq, radius, mask, capacity, model_config):
-    position_seq, radius, mask = _check(position_seq, radius, mask, model_config,
-                                        leading=model_config.input_sequence_length)
+    position_seq, radius, mask = _check(
+        position_seq, radius, mask, model_config, leading=model_config.input_sequence_length
+    )
     n = position_seq.shape[1]
     capacity = _as_capacity(capacity)
     if _is_traced(params, position_seq, radius, mask):
         # Under a transformation the graph size cannot adapt: size it from the
         # positions when they are concrete, else take all pairs.
         if capacity is None:
-            capacity = _full_capacity(n) if _is_traced(position_seq, mask) else _fitted(
-                np.asarray(position_seq)[-1], mask, model_config)
+            capacity = (
+                _full_capacity(n)
+                if _is_traced(position_seq, mask)
+                else _fitted(np.asarray(position_seq)[-1], mask, model_config)
+            )
         acc, nxt, overflow = one_step(params, position_seq, radius, mask, capacity, model_config)
         poison = jnp.where(overflow, jnp.nan, 0.0).astype(acc.dtype)
         return acc + poison, nxt + poison
     if capacity is None:
         capacity = _fitted(position_seq[-1], mask, model_config)
     while True:
-        acc, nxt, overflow = _step_jit(params, position_seq, radius, mask, capacity=capacity,
-                                       model_config=model_config)
+        acc, nxt, overflow = _step_jit(params, position_seq, radius, mask, capacity=capacity, model_config=model_config)
         if not bool(overflow):
             return acc, nxt
         capacity = _grown(capacity, position_seq[-1], mask, model_config)
@@ -353,7 +372,7 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
       wrong and ``window`` is the one before it, to go on from. Positions
       beyond the steps taken are zeros.
     """
-    frame_shape = window.shape[:axis] + window.shape[axis + 1:]
+    frame_shape = window.shape[:axis] + window.shape[axis + 1 :]
     limit = jnp.minimum(limit, length)
 
     def cond(carry):
@@ -364,8 +383,7 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
         taken, window, positions, _ = carry
         nxt, overflow = step(window)
         positions = lax.dynamic_update_index_in_dim(positions, nxt, taken, 0)
-        shifted = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)],
-                                  axis=axis)
+        shifted = jnp.concatenate([lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)], axis=axis)
         return taken + 1, jnp.where(overflow, window, shifted), positions, overflow
 
     start = (jnp.zeros((), jnp.int32), window, jnp.zeros((length,) + frame_shape, window.dtype), jnp.zeros((), bool))
@@ -374,16 +392,18 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
 
 
 @functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
-def _rollout_chunk(params, window, radius, mask, limit, *, length: int, capacity: GraphCapacity,
-                   model_config: ModelConfig):
+def _rollout_chunk(
+    params, window, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config: ModelConfig
+):
     """Up to ``limit`` steps of one trajectory, stopping at an overflow (see :func:`_steps_until_overflow`)."""
     step = lambda w: one_step(params, w, radius, mask, capacity, model_config)[1:]
     return _steps_until_overflow(step, window, limit, length=length, axis=0)
 
 
 @functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
-def _rollout_chunk_batch(params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity,
-                         model_config: ModelConfig):
+def _rollout_chunk_batch(
+    params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config: ModelConfig
+):
     """:func:`_rollout_chunk` of ``B`` windows ``(B, C, N, D)``; positions ``(length, B, N, D)``."""
 
     def step(w):
@@ -393,8 +413,9 @@ def _rollout_chunk_batch(params, windows, radius, mask, limit, *, length: int, c
     return _steps_until_overflow(step, windows, limit, length=length, axis=1)
 
 
-def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: GraphCapacity, grow, *,
-                    axis: int, progress=None):
+def _roll_in_chunks(
+    run_chunk, window, n_steps: int, chunk_size: int, capacity: GraphCapacity, grow, *, axis: int, progress=None
+):
     """The host loop of the concrete rollouts: compiled chunks, capacity grown after an overflow.
 
     ``run_chunk(window, limit, length, capacity)`` is a ``_rollout_chunk*``
@@ -423,14 +444,25 @@ def _roll_in_chunks(run_chunk, window, n_steps: int, chunk_size: int, capacity: 
             continue
         grown = grow(capacity, jnp.take(window, window.shape[axis] - 1, axis=axis))
         if grown == capacity:
-            raise RuntimeError(f"the graph overflows {capacity}, which cannot grow (every pair already fits): "
-                               "the positions at that step are probably not finite")
+            raise RuntimeError(
+                f"the graph overflows {capacity}, which cannot grow (every pair already fits): "
+                "the positions at that step are probably not finite"
+            )
         capacity = grown
     return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
 
 
-def rollout(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
-            capacity=None, chunk_size: int = 50):
+def rollout(
+    params,
+    initial_positions,
+    radius,
+    n_steps: int,
+    *,
+    model_config: ModelConfig,
+    mask=None,
+    capacity=None,
+    chunk_size: int = 50,
+):
     """Autoregressive rollout of ``n_steps`` frames (compiled loops, graph rebuilt at every step).
 
     With concrete arrays the steps run in compiled chunks of about
@@ -461,8 +493,9 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    window, radius, mask = _check(initial_positions, radius, mask, model_config,
-                                  leading=model_config.input_sequence_length)
+    window, radius, mask = _check(
+        initial_positions, radius, mask, model_config, leading=model_config.input_sequence_length
+    )
     n = window.shape[1]
     _check_steps(n_steps)
     capacity = _as_capacity(capacity)
@@ -472,14 +505,16 @@ def rollout(params, initial_positions, radius, n_steps: int, *, model_config: Mo
                 capacity = _full_capacity(n)
             else:
                 capacity = _fitted(np.asarray(window)[-1], mask, model_config, margin=0.5)
-        _, positions, flags = _scan_steps(params, window, radius, mask, length=n_steps, capacity=capacity,
-                                          model_config=model_config)
+        _, positions, flags = _scan_steps(
+            params, window, radius, mask, length=n_steps, capacity=capacity, model_config=model_config
+        )
         return positions + jnp.where(flags, jnp.nan, 0.0).astype(positions.dtype)[:, None, None]
 
     if capacity is None:
         capacity = _fitted(window[-1], mask, model_config, margin=0.1)
-    run_chunk = lambda w, limit, length, capacity: _rollout_chunk(params, w, radius, mask, limit, length=length,
-                                                                  capacity=capacity, model_config=model_config)
+    run_chunk = lambda w, limit, length, capacity: _rollout_chunk(
+        params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config
+    )
     grow = lambda capacity, position: _grown(capacity, position, mask, model_config)
     return _roll_in_chunks(run_chunk, window, n_steps, chunk_size, capacity, grow, axis=0)
 
@@ -490,8 +525,9 @@ def _fitted(position, mask, model_config: ModelConfig, *, margin: float = 0.05) 
     On the ladder, calls on other positions and other trajectories mostly
     land on a capacity whose programs are already compiled.
     """
-    fit = graph_lib.capacity_for(position, mask, connectivity_radius=model_config.connectivity_radius,
-                                 bounds=model_config.bounds, margin=margin)
+    fit = graph_lib.capacity_for(
+        position, mask, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds, margin=margin
+    )
     return graph_lib.on_ladder(fit, position.shape[0])
 
 
@@ -500,8 +536,15 @@ def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -
     return _batch_capacity(capacity, np.asarray(position)[None], np.asarray(mask)[None], model_config, margin=0.2)
 
 
-def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig,
-                   edge_budget: int | None = None):
+def one_step_batch(
+    params,
+    position_seq,
+    radius,
+    mask,
+    capacity: GraphCapacity,
+    model_config: ModelConfig,
+    edge_budget: int | None = None,
+):
     """:func:`one_step` for ``B`` trajectories at once, evaluated as one disjoint graph.
 
     Args:
@@ -518,16 +561,27 @@ def one_step_batch(params, position_seq, radius, mask, capacity: GraphCapacity, 
     acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
     acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[:, -1]
-    next_position = jnp.where(mask[..., None], _constrain(last + (last - position_seq[:, -2]) + acc, radius,
-                                                          model_config), last)
+    next_position = jnp.where(
+        mask[..., None], _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config), last
+    )
     overflow = graphs.overflow
     if edge_budget is not None:
         overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > edge_budget)
     return acc, next_position, overflow
 
 
-def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, mask=None,
-                  capacity=None, chunk_size: int = 50, progress=None):
+def rollout_batch(
+    params,
+    initial_positions,
+    radius,
+    n_steps: int,
+    *,
+    model_config: ModelConfig,
+    mask=None,
+    capacity=None,
+    chunk_size: int = 50,
+    progress=None,
+):
     """Rollouts of ``B`` trajectories of equal padded size in one compiled program per chunk.
 
     The same result as :func:`rollout` of each trajectory (padding never
@@ -576,22 +630,31 @@ def rollout_batch(params, initial_positions, radius, n_steps: int, *, model_conf
     if capacity is None:
         capacity = _batch_capacity(None, windows[:, -1], mask, model_config, margin=0.1)
     run_chunk = lambda w, limit, length, capacity: _rollout_chunk_batch(
-        params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config)
+        params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config
+    )
     # One trajectory's overflow stops them all; every graph is refitted at that frame.
     grow = lambda capacity, position: _batch_capacity(capacity, position, mask, model_config, margin=0.2)
-    positions = _roll_in_chunks(run_chunk, windows, n_steps, chunk_size, capacity, grow, axis=1,
-                                progress=progress)
+    positions = _roll_in_chunks(run_chunk, windows, n_steps, chunk_size, capacity, grow, axis=1, progress=progress)
     return jnp.moveaxis(positions, 0, 1)
 
 
-def _batch_capacity(capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *,
-                    margin: float) -> GraphCapacity:
+def _batch_capacity(
+    capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *, margin: float
+) -> GraphCapacity:
     """A capacity on the ladder that fits every graph of ``positions`` ``(B, N, D)`` (grown past ``capacity``)."""
     positions, mask = np.asarray(positions), np.asarray(mask)
     use_cells = None if capacity is None else capacity.cell is not None
-    fits = [graph_lib.capacity_for(p, m, connectivity_radius=model_config.connectivity_radius,
-                                   bounds=model_config.bounds, use_cell_list=use_cells, margin=margin)
-            for p, m in zip(positions, mask)]
+    fits = [
+        graph_lib.capacity_for(
+            p,
+            m,
+            connectivity_radius=model_config.connectivity_radius,
+            bounds=model_config.bounds,
+            use_cell_list=use_cells,
+            margin=margin,
+        )
+        for p, m in zip(positions, mask)
+    ]
     cells = [f.cell for f in fits if f.cell is not None]
     fit = GraphCapacity(edges=max(f.edges for f in fits), cell=max(cells) if cells else None)
     n = positions.shape[1]

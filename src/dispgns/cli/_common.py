@@ -32,14 +32,23 @@ def _raise_interrupt(signum, frame):
 
 
 def add_model_argument(parser) -> None:
-    parser.add_argument("--model", metavar="PATH",
-                        help="an exported model directory (model.json) or a training run directory "
-                             "(default: the model shipped with dispgns)")
-    parser.add_argument("--best", action="store_true",
-                        help="with a run directory: the best checkpoint by validation instead of the final model")
-    parser.add_argument("--keep-inside-box", choices=("on", "off"), default=None,
-                        help="project predicted centres that cross a wall back onto it (default: as the model's "
-                             "config says)")
+    parser.add_argument(
+        "--model",
+        metavar="PATH",
+        help="an exported model directory (model.json) or a training run directory "
+        "(default: the model shipped with dispgns)",
+    )
+    parser.add_argument(
+        "--best",
+        action="store_true",
+        help="with a run directory: the best checkpoint by validation instead of the final model",
+    )
+    parser.add_argument(
+        "--keep-inside-box",
+        choices=("on", "off"),
+        default=None,
+        help="project predicted centres that cross a wall back onto it (default: as the model's config says)",
+    )
 
 
 def load_model_argument(args):

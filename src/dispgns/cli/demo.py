@@ -19,16 +19,23 @@ def register(subparsers) -> None:
         "demo",
         help="simulate a fresh trajectory and compare the shipped model's rollout with it (the main job)",
         description="Simulate a fresh sedimentation trajectory with the ground-truth physics (radii never "
-                    "seen in training by default), roll the shipped learned simulator out from its first C "
-                    "frames, print the errors next to the constant-velocity baseline and the chaos floor, and "
-                    "write a side-by-side animation, a frame grid, an error-curve plot and metrics.json.",
+        "seen in training by default), roll the shipped learned simulator out from its first C "
+        "frames, print the errors next to the constant-velocity baseline and the chaos floor, and "
+        "write a side-by-side animation, a frame grid, an error-curve plot and metrics.json.",
     )
-    parser.add_argument("--seed", type=int, default=DEFAULT_SEED,
-                        help=f"seed of the initial state (default {DEFAULT_SEED})")
-    parser.add_argument("--radii", default=DEFAULT_RADII_MM, metavar="MM[,MM...]",
-                        help=f"radii in mm drawn for the particles (default {DEFAULT_RADII_MM}: unseen in training)")
+    parser.add_argument(
+        "--seed", type=int, default=DEFAULT_SEED, help=f"seed of the initial state (default {DEFAULT_SEED})"
+    )
+    parser.add_argument(
+        "--radii",
+        default=DEFAULT_RADII_MM,
+        metavar="MM[,MM...]",
+        help=f"radii in mm drawn for the particles (default {DEFAULT_RADII_MM}: unseen in training)",
+    )
     parser.add_argument("--frames", type=int, default=500, metavar="T", help="frames to simulate (default 500)")
-    parser.add_argument("--out", default="dispgns-demo", metavar="DIR", help="output directory (default ./dispgns-demo)")
+    parser.add_argument(
+        "--out", default="dispgns-demo", metavar="DIR", help="output directory (default ./dispgns-demo)"
+    )
     add_model_argument(parser)
     parser.add_argument("--stride", type=int, default=2, help="animation draws every STRIDE-th frame (default 2)")
     parser.add_argument("--no-mp4", action="store_true", help="GIF only")
@@ -67,8 +74,11 @@ def run(args: argparse.Namespace) -> int:
     config = PhysicsConfig()
     half, save_every = config.box_half_size, 15
     frame_dt = save_every * config.dt
-    print(f"dispgns demo: seed {args.seed}, radii {', '.join(f'{r * 1e3:g}' for r in radii)} mm, "
-          f"{args.frames} frames ({args.frames * frame_dt:.2f} s); model: {info.get('source')}", flush=True)
+    print(
+        f"dispgns demo: seed {args.seed}, radii {', '.join(f'{r * 1e3:g}' for r in radii)} mm, "
+        f"{args.frames} frames ({args.frames * frame_dt:.2f} s); model: {info.get('source')}",
+        flush=True,
+    )
 
     timings = {}
     start = time.perf_counter()
@@ -81,56 +91,95 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
-    truth = np.asarray(simulate(state.position, state.velocity, state.radius, config, n_frames=args.frames,
-                                save_every=save_every)) / half
+    truth = (
+        np.asarray(
+            simulate(state.position, state.velocity, state.radius, config, n_frames=args.frames, save_every=save_every)
+        )
+        / half
+    )
     truth = truth.astype(np.float32)
     timings["physics_s"] = time.perf_counter() - start
     n = truth.shape[1]
     radius = (np.asarray(state.radius, np.float64) / half).astype(np.float32)
-    print(f"ground truth: {n} particles, {(args.frames - 1) * save_every} Euler steps in "
-          f"{timings['physics_s']:.1f} s", flush=True)
+    print(
+        f"ground truth: {n} particles, {(args.frames - 1) * save_every} Euler steps in {timings['physics_s']:.1f} s",
+        flush=True,
+    )
 
     start = time.perf_counter()
 
-    prediction = predict_trajectories(params, [SimpleNamespace(position=truth, radius=radius)],
-                                      model_config=model_config)[0]
+    prediction = predict_trajectories(
+        params, [SimpleNamespace(position=truth, radius=radius)], model_config=model_config
+    )[0]
     timings["gnn_rollout_s"] = time.perf_counter() - start
     steps = args.frames - c
-    print(f"learned simulator: {steps} steps in {timings['gnn_rollout_s']:.1f} s "
-          f"({1e3 * timings['gnn_rollout_s'] / steps:.1f} ms/step, compilation included)", flush=True)
+    print(
+        f"learned simulator: {steps} steps in {timings['gnn_rollout_s']:.1f} s "
+        f"({1e3 * timings['gnn_rollout_s'] / steps:.1f} ms/step, compilation included)",
+        flush=True,
+    )
 
     chaos = None
     if not args.no_chaos:
         start = time.perf_counter()
 
-        initial = SimpleNamespace(initial_position=np.asarray(state.position, np.float64),
-                                  initial_velocity=np.asarray(state.velocity, np.float64),
-                                  initial_radius=np.asarray(state.radius, np.float64))
+        initial = SimpleNamespace(
+            initial_position=np.asarray(state.position, np.float64),
+            initial_velocity=np.asarray(state.velocity, np.float64),
+            initial_radius=np.asarray(state.radius, np.float64),
+        )
         chaos = chaos_floor_trajectories([initial], config, n_frames=args.frames, save_every=save_every)[0]
         timings["chaos_floor_s"] = time.perf_counter() - start
 
-    metrics = rollout_metrics(prediction, truth, radius, box_half_size=half, input_frames=c, frame_dt=frame_dt,
-                              chaos_floor=None if chaos is None else chaos.astype(np.float32),
-                              physics_config=config)
+    metrics = rollout_metrics(
+        prediction,
+        truth,
+        radius,
+        box_half_size=half,
+        input_frames=c,
+        frame_dt=frame_dt,
+        chaos_floor=None if chaos is None else chaos.astype(np.float32),
+        physics_config=config,
+    )
     print()
     print(summary_table(metrics, timings, steps, (args.frames - 1) * save_every))
     print()
 
     start = time.perf_counter()
-    files = save_rollout_animation(str(out / "rollout"), truth, prediction, radius, mp4=not args.no_mp4,
-                                   input_frames=c, stride=args.stride, frame_dt=frame_dt, box_half_size=half)
+    files = save_rollout_animation(
+        str(out / "rollout"),
+        truth,
+        prediction,
+        radius,
+        mp4=not args.no_mp4,
+        input_frames=c,
+        stride=args.stride,
+        frame_dt=frame_dt,
+        box_half_size=half,
+    )
     grid_frames = np.linspace(0, args.frames - 1, 5).round().astype(int).tolist()
-    frame_grid(truth, prediction, radius, grid_frames, frame_dt=frame_dt, box_half_size=half,
-               path=out / "rollout_grid.png")
-    plot_rollout_errors(metrics, frame_dt=frame_dt, title=f"demo rollout (seed {args.seed}, N = {n})",
-                        path=out / "error_curve.png")
+    frame_grid(
+        truth, prediction, radius, grid_frames, frame_dt=frame_dt, box_half_size=half, path=out / "rollout_grid.png"
+    )
+    plot_rollout_errors(
+        metrics, frame_dt=frame_dt, title=f"demo rollout (seed {args.seed}, N = {n})", path=out / "error_curve.png"
+    )
     timings["pictures_s"] = time.perf_counter() - start
-    report = {"seed": args.seed, "radii_mm": [r * 1e3 for r in radii], "n_particles": n, "frames": args.frames,
-              "model": {"source": info.get("source"), "config": model_config.to_dict()},
-              "timings": timings, "metrics": metrics}
+    report = {
+        "seed": args.seed,
+        "radii_mm": [r * 1e3 for r in radii],
+        "n_particles": n,
+        "frames": args.frames,
+        "model": {"source": info.get("source"), "config": model_config.to_dict()},
+        "timings": timings,
+        "metrics": metrics,
+    }
     write_json(out / "metrics.json", report)
-    written = [files["gif"]] + ([files["mp4"]] if files["mp4"] else []) + [
-        str(out / "rollout_grid.png"), str(out / "error_curve.png"), str(out / "metrics.json")]
+    written = (
+        [files["gif"]]
+        + ([files["mp4"]] if files["mp4"] else [])
+        + [str(out / "rollout_grid.png"), str(out / "error_curve.png"), str(out / "metrics.json")]
+    )
     print("wrote:")
     for path in written:
         print(f"  {path}")
@@ -158,8 +207,7 @@ def summary_table(metrics, timings, steps: int, euler_steps: int) -> str:
         rows.append(("chaos floor MSE (physics, 1e-6 L perturbation)", fmt(metrics["chaos_floor_mse"])))
     rows += [
         ("wall crossings (particle-frames beyond 0.1 a)", str(metrics["wall_violations_total"])),
-        ("overlapping pairs, max per frame (truth)",
-         f"{metrics['overlaps_max']} ({metrics['overlaps_truth_max']})"),
+        ("overlapping pairs, max per frame (truth)", f"{metrics['overlaps_max']} ({metrics['overlaps_truth_max']})"),
         ("time: ground-truth physics", f"{timings['physics_s']:.1f} s ({euler_steps} Euler steps, with compilation)"),
         ("time: learned simulator", f"{timings['gnn_rollout_s']:.1f} s ({steps} steps, with compilation)"),
     ]

@@ -15,23 +15,31 @@ def register(subparsers) -> None:
         "evaluate",
         help="roll out a model on test splits and score it",
         description="Roll the model out over every trajectory of the chosen splits (all frames after the "
-                    "first C), score each rollout (rollout MSE, RMSE in mm and diameters, horizons, wall "
-                    "crossings, overlaps, kinetic energy, mean height) next to the constant-velocity baseline "
-                    "and the chaos floor, and write OUT/metrics.json, OUT/predictions/<split>.h5 and "
-                    "OUT/error_curves_<split>.png.",
+        "first C), score each rollout (rollout MSE, RMSE in mm and diameters, horizons, wall "
+        "crossings, overlaps, kinetic energy, mean height) next to the constant-velocity baseline "
+        "and the chaos floor, and write OUT/metrics.json, OUT/predictions/<split>.h5 and "
+        "OUT/error_curves_<split>.png.",
     )
     add_model_argument(parser)
     parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory")
-    parser.add_argument("--splits", nargs="+", default=["test", "test_unseen"], metavar="SPLIT",
-                        help="splits to evaluate (default: test test_unseen)")
-    parser.add_argument("--out", default="dispgns-eval", metavar="DIR", help="output directory (default ./dispgns-eval)")
+    parser.add_argument(
+        "--splits",
+        nargs="+",
+        default=["test", "test_unseen"],
+        metavar="SPLIT",
+        help="splits to evaluate (default: test test_unseen)",
+    )
+    parser.add_argument(
+        "--out", default="dispgns-eval", metavar="DIR", help="output directory (default ./dispgns-eval)"
+    )
     parser.add_argument("--frames", type=int, metavar="T", help="evaluate the first T frames only (default: all)")
     parser.add_argument("--max-trajectories", type=int, metavar="K", help="only the first K trajectories per split")
     parser.add_argument("--batch-size", type=int, default=6, metavar="B", help="trajectories rolled out together")
     parser.add_argument("--no-chaos", action="store_true", help="skip the chaos-floor reference")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace an earlier evaluation in DIR (a directory with metrics.json)")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier evaluation in DIR (a directory with metrics.json)"
+    )
     parser.set_defaults(func=run)
 
 
@@ -45,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
     except DatasetError as error:
         raise CLIError(str(error)) from None
     if metadata.dim != model_config.dim:
-        raise CLIError(f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim "
-                       f"{model_config.dim}")
+        raise CLIError(
+            f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim {model_config.dim}"
+        )
     c = model_config.input_sequence_length
     if args.frames is not None and not c < args.frames <= metadata.sequence_length:
         raise CLIError(f"--frames {args.frames}: expected C = {c} < T <= {metadata.sequence_length}")
@@ -56,8 +65,10 @@ def run(args: argparse.Namespace) -> int:
     # Everything is written into a staging directory renamed to --out at the
     # end: an interrupted or failed evaluation leaves nothing half-written.
     try:
-        with sigterm_as_interrupt(), staged_directory(out, overwrite=args.overwrite, marker=METRICS_FILE,
-                                                      kind="evaluation") as staging:
+        with (
+            sigterm_as_interrupt(),
+            staged_directory(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="evaluation") as staging,
+        ):
             report = _evaluate(args, params, model_config, info, metadata, splits, staging)
     except FileExistsError as error:
         raise CLIError(str(error)) from None
@@ -84,15 +95,24 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
     c = model_config.input_sequence_length
     (out / "predictions").mkdir()
     frames = args.frames or metadata.sequence_length
-    report = {"model": {"source": info.get("source"), "config": model_config.to_dict(),
-                        "record": info.get("record", {})},
-              "dataset": {"path": str(Path(args.data).absolute()), "preset": metadata.preset, "seed": metadata.seed},
-              "frames": frames, "splits": {}}
+    report = {
+        "model": {"source": info.get("source"), "config": model_config.to_dict(), "record": info.get("record", {})},
+        "dataset": {"path": str(Path(args.data).absolute()), "preset": metadata.preset, "seed": metadata.seed},
+        "frames": frames,
+        "splits": {},
+    }
     for split, trajectories in splits.items():
-        trajectories = trajectories[:args.max_trajectories] if args.max_trajectories else trajectories
+        trajectories = trajectories[: args.max_trajectories] if args.max_trajectories else trajectories
         total = len(trajectories) * (frames - c)
-        bar = tqdm(total=total, desc=f"{split} rollouts", unit=" steps", file=sys.stderr, dynamic_ncols=True,
-                   disable=args.no_progress, leave=False)
+        bar = tqdm(
+            total=total,
+            desc=f"{split} rollouts",
+            unit=" steps",
+            file=sys.stderr,
+            dynamic_ncols=True,
+            disable=args.no_progress,
+            leave=False,
+        )
 
         def progress(stage, amount, bar=bar):
             if stage == "rollout":
@@ -102,38 +122,66 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
 
         chaos = not args.no_chaos and metadata.has_initial_state
         try:
-            result = evaluate_trajectories(params, trajectories, model_config=model_config,
-                                           box_half_size=metadata.box_half_size, frame_dt=metadata.frame_dt,
-                                           physics_config=metadata.physics_config, save_every=metadata.save_every,
-                                           chaos_floor=chaos, chaos_x64=metadata.precision == "float64",
-                                           n_frames=frames, batch_size=args.batch_size, progress=progress)
+            result = evaluate_trajectories(
+                params,
+                trajectories,
+                model_config=model_config,
+                box_half_size=metadata.box_half_size,
+                frame_dt=metadata.frame_dt,
+                physics_config=metadata.physics_config,
+                save_every=metadata.save_every,
+                chaos_floor=chaos,
+                chaos_x64=metadata.precision == "float64",
+                n_frames=frames,
+                batch_size=args.batch_size,
+                progress=progress,
+            )
         finally:
             bar.close()
-        predicted = [Trajectory(position=p, radius=t.radius, attrs={"source_index": k, "split": split,
-                                                                     "model": str(info.get("source"))})
-                     for k, (p, t) in enumerate(zip(result["predictions"], trajectories))]
+        predicted = [
+            Trajectory(
+                position=p, radius=t.radius, attrs={"source_index": k, "split": split, "model": str(info.get("source"))}
+            )
+            for k, (p, t) in enumerate(zip(result["predictions"], trajectories))
+        ]
         write_split(out / "predictions" / split_filename(split), predicted, predicted=True)
-        plot_rollout_errors(result["summary"], frame_dt=metadata.frame_dt, title=f"{split}: rollout error",
-                            path=out / f"error_curves_{split}.png")
-        report["splits"][split] = {"summary": result["summary"], "trajectories": result["metrics"],
-                                   "chaos_floor": result["chaos_floor"]}
+        plot_rollout_errors(
+            result["summary"],
+            frame_dt=metadata.frame_dt,
+            title=f"{split}: rollout error",
+            path=out / f"error_curves_{split}.png",
+        )
+        report["splits"][split] = {
+            "summary": result["summary"],
+            "trajectories": result["metrics"],
+            "chaos_floor": result["chaos_floor"],
+        }
     write_json(out / METRICS_FILE, report)
     return report
 
 
-ROWS = (("rollout MSE", "mse"), ("RMSE (mm)", "rmse_mm"), ("RMSE (diameters)", "rmse_diameters"),
-        ("MSE h10", "mse_h10"), ("MSE h100", "mse_h100"), ("constant velocity MSE", "constant_velocity_mse"),
-        ("chaos floor MSE", "chaos_floor_mse"), ("model / constant velocity", "mse_over_constant_velocity"),
-        ("wall crossings (particle-frames)", "wall_violations_total"), ("overlapping pairs (sum)", "overlaps_total"),
-        ("overlapping pairs, truth", "overlaps_truth_total"))
+ROWS = (
+    ("rollout MSE", "mse"),
+    ("RMSE (mm)", "rmse_mm"),
+    ("RMSE (diameters)", "rmse_diameters"),
+    ("MSE h10", "mse_h10"),
+    ("MSE h100", "mse_h100"),
+    ("constant velocity MSE", "constant_velocity_mse"),
+    ("chaos floor MSE", "chaos_floor_mse"),
+    ("model / constant velocity", "mse_over_constant_velocity"),
+    ("wall crossings (particle-frames)", "wall_violations_total"),
+    ("overlapping pairs (sum)", "overlaps_total"),
+    ("overlapping pairs, truth", "overlaps_truth_total"),
+)
 
 
 def table(report) -> str:
     """A Markdown table: one column per split, mean ± std over its trajectories."""
     splits = list(report["splits"])
-    lines = ["| metric | " + " | ".join(f"{s} ({report['splits'][s]['summary']['n_trajectories']})"
-                                      for s in splits) + " |",
-             "| --- |" + " --- |" * len(splits)]
+    lines = [
+        "| metric | " + " | ".join(f"{s} ({report['splits'][s]['summary']['n_trajectories']})" for s in splits) + " |",
+        "| --- |" + " --- |" * len(splits),
+    ]
     for label, key in ROWS:
         cells = []
         for s in splits:

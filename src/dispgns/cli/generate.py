@@ -17,30 +17,52 @@ def register(subparsers) -> None:
         "generate",
         help="simulate a ground-truth dataset",
         description="Simulate sedimentation trajectories with the ground-truth physics and write a dataset "
-                    "directory (train/valid/test/test_unseen .h5 files and metadata.json). Deterministic "
-                    "for a seed; written atomically.",
+        "directory (train/valid/test/test_unseen .h5 files and metadata.json). Deterministic "
+        "for a seed; written atomically.",
     )
-    parser.add_argument("--preset", choices=("paper", "tiny"), default="paper",
-                        help="paper: the paper's 40 trajectories of 500 frames (default); tiny: 5 small "
-                             "trajectories for tests and demos")
+    parser.add_argument(
+        "--preset",
+        choices=("paper", "tiny"),
+        default="paper",
+        help="paper: the paper's 40 trajectories of 500 frames (default); tiny: 5 small "
+        "trajectories for tests and demos",
+    )
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to create")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="random seed in [0, 2^32) (default 0); every trajectory's key derives from it")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed in [0, 2^32) (default 0); every trajectory's key derives from it",
+    )
     parser.add_argument("--x64", action="store_true", help="simulate in float64 (slower; default float32)")
     parser.add_argument("--frames", type=int, metavar="T", help="frames per trajectory (default: the preset's)")
     for option, split in _COUNT_OPTIONS:
-        parser.add_argument(f"--{option}-count", type=int, metavar="K", dest=f"count_{split}",
-                            help=f"number of {split} trajectories (0 drops the split)")
-    parser.add_argument("--radii", metavar="MM[,MM...]",
-                        help="radii in mm drawn for train, valid and test, e.g. 2,2.5,3,3.5,4,4.5,5")
-    parser.add_argument("--unseen-radii", action="append", metavar="MM[,MM...]",
-                        help="radii in mm of one group of test_unseen trajectories; repeat for several "
-                             "groups (the count is spread evenly over them)")
-    parser.add_argument("--batch-size", type=int, metavar="B",
-                        help="at most B trajectories simulated together, to save memory (default: no limit; "
-                             "groups of similar particle count are chosen automatically). In float32 the "
-                             "grouping changes the rounding of the chaotic dynamics: the same files need the "
-                             "same seed, spec and batch size (recorded in metadata.json)")
+        parser.add_argument(
+            f"--{option}-count",
+            type=int,
+            metavar="K",
+            dest=f"count_{split}",
+            help=f"number of {split} trajectories (0 drops the split)",
+        )
+    parser.add_argument(
+        "--radii", metavar="MM[,MM...]", help="radii in mm drawn for train, valid and test, e.g. 2,2.5,3,3.5,4,4.5,5"
+    )
+    parser.add_argument(
+        "--unseen-radii",
+        action="append",
+        metavar="MM[,MM...]",
+        help="radii in mm of one group of test_unseen trajectories; repeat for several "
+        "groups (the count is spread evenly over them)",
+    )
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        metavar="B",
+        help="at most B trajectories simulated together, to save memory (default: no limit; "
+        "groups of similar particle count are chosen automatically). In float32 the "
+        "grouping changes the rounding of the chaotic dynamics: the same files need the "
+        "same seed, spec and batch size (recorded in metadata.json)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DIR")
     parser.set_defaults(func=run)
 
@@ -73,11 +95,18 @@ def build_spec(args: argparse.Namespace):
     unseen = [_parse_mm(text, "--unseen-radii") for text in args.unseen_radii] if args.unseen_radii else None
     unseen_count = counts.get("test_unseen", spec.counts.get("test_unseen", 0))
     if unseen is not None and 0 < unseen_count < len(unseen):
-        raise CLIError(f"--unseen-radii gives {len(unseen)} groups but only {unseen_count} test_unseen "
-                       f"trajectories are asked for (--unseen-count): every group needs at least one")
+        raise CLIError(
+            f"--unseen-radii gives {len(unseen)} groups but only {unseen_count} test_unseen "
+            f"trajectories are asked for (--unseen-count): every group needs at least one"
+        )
     try:
-        return spec.replace(n_frames=args.frames, counts=counts, radii_m=radii, unseen_radii_m=unseen,
-                            precision="float64" if args.x64 else "float32")
+        return spec.replace(
+            n_frames=args.frames,
+            counts=counts,
+            radii_m=radii,
+            unseen_radii_m=unseen,
+            precision="float64" if args.x64 else "float32",
+        )
     except ValueError as error:
         raise CLIError(str(error)) from None
 
@@ -97,8 +126,13 @@ class _Bars:
         if stage != self.stage:
             self.close()
             self.stage = stage
-            self.bar = tqdm(total=total, desc=self.labels.get(stage, stage), unit=" traj" if stage == "place"
-                            else " frames", dynamic_ncols=True, leave=False)
+            self.bar = tqdm(
+                total=total,
+                desc=self.labels.get(stage, stage),
+                unit=" traj" if stage == "place" else " frames",
+                dynamic_ncols=True,
+                leave=False,
+            )
         self.bar.update(done - self.bar.n)
 
     def close(self) -> None:
@@ -123,8 +157,9 @@ def run(args: argparse.Namespace) -> int:
     precision = jax.enable_x64(True) if args.x64 else contextlib.nullcontext()
     try:
         with precision, sigterm_as_interrupt():
-            metadata = generate_dataset(spec, args.out, args.seed, overwrite=args.overwrite,
-                                        batch_size=args.batch_size, progress=bars)
+            metadata = generate_dataset(
+                spec, args.out, args.seed, overwrite=args.overwrite, batch_size=args.batch_size, progress=bars
+            )
     except (FileExistsError, PlacementError, DatasetError, ValueError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:
@@ -136,7 +171,9 @@ def run(args: argparse.Namespace) -> int:
     particles = [n for split in metadata.splits for n in metadata.particle_counts[split]]
     per_split = ", ".join(f"{split} {counts[split]}" for split in metadata.splits)
     print(f"wrote {args.out}")
-    print(f"{sum(counts.values())} trajectories ({per_split}), {metadata.sequence_length} frames each, "
-          f"{min(particles)}-{max(particles)} particles per trajectory, {metadata.precision}, "
-          f"seed {metadata.seed}, {elapsed:.1f} s")
+    print(
+        f"{sum(counts.values())} trajectories ({per_split}), {metadata.sequence_length} frames each, "
+        f"{min(particles)}-{max(particles)} particles per trajectory, {metadata.precision}, "
+        f"seed {metadata.seed}, {elapsed:.1f} s"
+    )
     return 0

@@ -14,24 +14,34 @@ def register(subparsers) -> None:
         "render",
         help="animate ground truth next to a model's rollout",
         description="Draw one trajectory of a dataset split next to a prediction: either rolled out here by "
-                    "the model (--model, default the shipped one) or read from a predictions file written by "
-                    "dispgns evaluate (--predictions). Writes OUT.gif (and OUT.mp4 when ffmpeg is available) "
-                    "and OUT_grid.png, a still grid of a few frames.",
+        "the model (--model, default the shipped one) or read from a predictions file written by "
+        "dispgns evaluate (--predictions). Writes OUT.gif (and OUT.mp4 when ffmpeg is available) "
+        "and OUT_grid.png, a still grid of a few frames.",
     )
     parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory")
     parser.add_argument("--split", default="test_unseen", help="split (default test_unseen)")
     parser.add_argument("--index", type=int, default=0, help="trajectory index in the split (default 0)")
     add_model_argument(parser)
-    parser.add_argument("--predictions", metavar="FILE.h5",
-                        help="a predictions file from dispgns evaluate (instead of rolling out a model)")
-    parser.add_argument("--out", default="dispgns-render/rollout", metavar="PREFIX",
-                        help="output prefix (default dispgns-render/rollout): PREFIX.gif, PREFIX.mp4, PREFIX_grid.png")
+    parser.add_argument(
+        "--predictions",
+        metavar="FILE.h5",
+        help="a predictions file from dispgns evaluate (instead of rolling out a model)",
+    )
+    parser.add_argument(
+        "--out",
+        default="dispgns-render/rollout",
+        metavar="PREFIX",
+        help="output prefix (default dispgns-render/rollout): PREFIX.gif, PREFIX.mp4, PREFIX_grid.png",
+    )
     parser.add_argument("--start", type=int, default=0, help="first frame of the animation")
     parser.add_argument("--stop", type=int, help="frame after the last one of the animation (default: the end)")
     parser.add_argument("--stride", type=int, default=2, help="draw every STRIDE-th frame (default 2)")
     parser.add_argument("--fps", type=float, default=25.0, help="frames per second of the animation")
-    parser.add_argument("--grid-frames", metavar="F,F,...",
-                        help="frames of the still grid (negative: from the end; default: 5 evenly spaced)")
+    parser.add_argument(
+        "--grid-frames",
+        metavar="F,F,...",
+        help="frames of the still grid (negative: from the end; default: 5 evenly spaced)",
+    )
     parser.add_argument("--no-mp4", action="store_true", help="GIF only")
     parser.set_defaults(func=run)
 
@@ -77,11 +87,16 @@ def run(args: argparse.Namespace) -> int:
         prediction = np.asarray(predicted[args.index].position)
         shape = truth.position.shape
         # `dispgns evaluate --frames T` writes the first T frames of each trajectory, inputs included.
-        if prediction.shape[1:] != shape[1:] or not 1 <= prediction.shape[0] <= shape[0] or not np.allclose(
-                prediction[0], truth.position[0], rtol=0, atol=1e-6):
-            raise CLIError(f"{args.predictions}: trajectory {args.index} (shape {prediction.shape}) is not a "
-                           f"prediction of {args.split} trajectory {args.index} (shape {shape}): it must start "
-                           f"from the same frame 0{_split_note(predicted[args.index], args.split)}")
+        if (
+            prediction.shape[1:] != shape[1:]
+            or not 1 <= prediction.shape[0] <= shape[0]
+            or not np.allclose(prediction[0], truth.position[0], rtol=0, atol=1e-6)
+        ):
+            raise CLIError(
+                f"{args.predictions}: trajectory {args.index} (shape {prediction.shape}) is not a "
+                f"prediction of {args.split} trajectory {args.index} (shape {shape}): it must start "
+                f"from the same frame 0{_split_note(predicted[args.index], args.split)}"
+            )
     else:
         params, model_config, _ = load_model_argument(args)
         input_frames = model_config.input_sequence_length
@@ -102,14 +117,27 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         raise CLIError(f"cannot write to {prefix.parent}: {error.strerror or error}") from None
     common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.box_half_size)
-    files = save_rollout_animation(str(prefix), truth_frames, prediction, np.asarray(truth.radius),
-                                   mp4=not args.no_mp4, input_frames=input_frames or 6, start=args.start,
-                                   stop=args.stop, stride=args.stride, fps=args.fps, **common)
+    files = save_rollout_animation(
+        str(prefix),
+        truth_frames,
+        prediction,
+        np.asarray(truth.radius),
+        mp4=not args.no_mp4,
+        input_frames=input_frames or 6,
+        start=args.start,
+        stop=args.stop,
+        stride=args.stride,
+        fps=args.fps,
+        **common,
+    )
     grid = f"{prefix}_grid.png"
     frame_grid(truth_frames, prediction, np.asarray(truth.radius), grid_frames, path=grid, **common)
     written = [files["gif"]] + ([files["mp4"]] if files["mp4"] else []) + [grid]
-    print("wrote " + ", ".join(written) + (f" (mp4 skipped: {files['mp4_skipped']})"
-                                           if files["mp4_skipped"] and not args.no_mp4 else ""))
+    print(
+        "wrote "
+        + ", ".join(written)
+        + (f" (mp4 skipped: {files['mp4_skipped']})" if files["mp4_skipped"] and not args.no_mp4 else "")
+    )
     return 0
 
 

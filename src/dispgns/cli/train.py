@@ -15,8 +15,16 @@ from dispgns.cli._common import sigterm_as_interrupt
 
 # Training fields that may change when a run is resumed: they decide how long
 # and how often, not what is learned.
-RESUMABLE_TRAIN_FIELDS = ("num_steps", "log_every", "validate_every", "checkpoint_every", "keep_checkpoints",
-                          "validation_examples", "validation_trajectories", "validation_rollout_frames")
+RESUMABLE_TRAIN_FIELDS = (
+    "num_steps",
+    "log_every",
+    "validate_every",
+    "checkpoint_every",
+    "keep_checkpoints",
+    "validation_examples",
+    "validation_trajectories",
+    "validation_rollout_frames",
+)
 
 
 def register(subparsers) -> None:
@@ -24,17 +32,26 @@ def register(subparsers) -> None:
         "train",
         help="train a learned simulator on a dataset",
         description="Train the graph network simulator on DATA's train split, validating on its valid split. "
-                    "Writes RUN/config.json, RUN/log.jsonl, orbax checkpoints (RUN/checkpoints, RUN/best), "
-                    "the final model (RUN/model) and RUN/training_curve.png. Ctrl-C checkpoints and stops; "
-                    "--resume continues exactly where the run stopped.",
+        "Writes RUN/config.json, RUN/log.jsonl, orbax checkpoints (RUN/checkpoints, RUN/best), "
+        "the final model (RUN/model) and RUN/training_curve.png. Ctrl-C checkpoints and stops; "
+        "--resume continues exactly where the run stopped.",
     )
     parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory (from dispgns generate)")
     parser.add_argument("--out", required=True, metavar="RUN", help="run directory to create (or resume)")
-    parser.add_argument("--config", metavar="YAML",
-                        help="YAML file with 'model:' and 'train:' sections (ModelConfig / TrainConfig fields)")
-    parser.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="overrides",
-                        help="override one field, e.g. --set model.latent_size=64 --set train.noise_std=3e-4 "
-                             "(repeatable; applied after --config)")
+    parser.add_argument(
+        "--config",
+        metavar="YAML",
+        help="YAML file with 'model:' and 'train:' sections (ModelConfig / TrainConfig fields)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        dest="overrides",
+        help="override one field, e.g. --set model.latent_size=64 --set train.noise_std=3e-4 "
+        "(repeatable; applied after --config)",
+    )
     parser.add_argument("--steps", type=int, metavar="N", help="train up to step N (train.num_steps)")
     parser.add_argument("--resume", action="store_true", help="continue the run in RUN from its latest checkpoint")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing run in RUN")
@@ -57,8 +74,9 @@ def _read_yaml(path: str) -> dict[str, Any]:
     except yaml.YAMLError as error:
         raise CLIError(f"{path}: not valid YAML ({error})") from None
     if not isinstance(values, dict):
-        raise CLIError(f"{path}: expected a mapping with 'model:' and/or 'train:' sections, got "
-                       f"{type(values).__name__}")
+        raise CLIError(
+            f"{path}: expected a mapping with 'model:' and/or 'train:' sections, got {type(values).__name__}"
+        )
     unknown = sorted(set(values) - {"model", "train"})
     if unknown:
         raise CLIError(f"{path}: unknown section(s) {unknown}, expected 'model' and/or 'train'")
@@ -75,8 +93,10 @@ def _apply_overrides(values: dict[str, dict[str, Any]], overrides: list[str]) ->
         name, sep, raw = text.partition("=")
         section, dot, field = name.strip().partition(".")
         if not sep or not dot or section not in ("model", "train") or not field:
-            raise CLIError(f"--set {text!r}: expected SECTION.FIELD=VALUE with SECTION 'model' or 'train', "
-                           f"e.g. --set model.latent_size=64")
+            raise CLIError(
+                f"--set {text!r}: expected SECTION.FIELD=VALUE with SECTION 'model' or 'train', "
+                f"e.g. --set model.latent_size=64"
+            )
         try:
             values[section][field] = yaml.safe_load(raw)
         except yaml.YAMLError:
@@ -114,8 +134,11 @@ def resolve_configs(args: argparse.Namespace, default_connectivity_radius: float
 
 
 def _differences(stored, requested, fields) -> list[str]:
-    return [f"{name}: checkpoint {getattr(stored, name)!r}, requested {getattr(requested, name)!r}"
-            for name in fields if getattr(stored, name) != getattr(requested, name)]
+    return [
+        f"{name}: checkpoint {getattr(stored, name)!r}, requested {getattr(requested, name)!r}"
+        for name in fields
+        if getattr(stored, name) != getattr(requested, name)
+    ]
 
 
 def resumed_configs(stored_model, stored_train, explicit: dict[str, dict[str, Any]], run_dir: Path):
@@ -128,8 +151,11 @@ def resumed_configs(stored_model, stored_train, explicit: dict[str, dict[str, An
             raise CLIError(f"invalid model config: {error}") from None
         diff = _differences(stored_model, requested, [f.name for f in dataclasses.fields(stored_model)])
         if diff:
-            raise CLIError(f"{run_dir / 'config.json'}: the requested model does not match the checkpoint ("
-                           + "; ".join(diff) + "); a run resumes with the model it was started with")
+            raise CLIError(
+                f"{run_dir / 'config.json'}: the requested model does not match the checkpoint ("
+                + "; ".join(diff)
+                + "); a run resumes with the model it was started with"
+            )
     try:
         train = dataclasses.replace(stored_train, **explicit["train"])
     except (TypeError, ValueError) as error:
@@ -137,8 +163,11 @@ def resumed_configs(stored_model, stored_train, explicit: dict[str, dict[str, An
     fixed = [f.name for f in dataclasses.fields(stored_train) if f.name not in RESUMABLE_TRAIN_FIELDS]
     diff = _differences(stored_train, train, fixed)
     if diff:
-        raise CLIError(f"{run_dir / 'config.json'}: the requested training config does not match the checkpoint ("
-                       + "; ".join(diff) + f"); on resume only {', '.join(RESUMABLE_TRAIN_FIELDS)} may change")
+        raise CLIError(
+            f"{run_dir / 'config.json'}: the requested training config does not match the checkpoint ("
+            + "; ".join(diff)
+            + f"); on resume only {', '.join(RESUMABLE_TRAIN_FIELDS)} may change"
+        )
     return stored_model, train
 
 
@@ -150,8 +179,10 @@ def _check_fresh_run_dir(run_dir: Path, *, overwrite: bool) -> None:
 
     if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
         if not overwrite:
-            raise CLIError(f"{run_dir} exists and is not empty; use --resume to continue the run in it, "
-                           f"--overwrite to replace it, or another --out")
+            raise CLIError(
+                f"{run_dir} exists and is not empty; use --resume to continue the run in it, "
+                f"--overwrite to replace it, or another --out"
+            )
         if not (run_dir / CONFIG_FILE).is_file():
             raise CLIError(f"refusing to overwrite {run_dir}: it is not a dispgns run ({CONFIG_FILE} not found)")
     parent = next((p for p in run_dir.absolute().parents if p.exists()), None)
@@ -177,15 +208,21 @@ class _Progress:
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=last, initial=first, desc="training", unit=" steps", dynamic_ncols=True,
-                            file=sys.stderr, smoothing=0.05)
+            self.bar = tqdm(
+                total=last,
+                initial=first,
+                desc="training",
+                unit=" steps",
+                dynamic_ncols=True,
+                file=sys.stderr,
+                smoothing=0.05,
+            )
 
     def step(self, step: int, metrics) -> None:
         if self.bar is not None:
             self.bar.update(step - self.bar.n)
             if step % 10 == 0:
-                self.bar.set_postfix(loss=f"{metrics['loss']:.3g}", lr=f"{metrics['learning_rate']:.2g}",
-                                     refresh=False)
+                self.bar.set_postfix(loss=f"{metrics['loss']:.3g}", lr=f"{metrics['learning_rate']:.2g}", refresh=False)
 
     def write(self, text: str) -> None:
         if self.bar is not None:
@@ -208,9 +245,19 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.data.examples import BatchStream
     from dispgns.render import plot_training_curve
     from dispgns.training import compute_normalization, create_train_state
-    from dispgns.training.checkpoint import (CONFIG_FILE, LOG_FILE, MODEL_DIR, CheckpointError, Checkpointer,
-                                             JsonlLog, configs_from, export_model, read_json, run_config,
-                                             write_json)
+    from dispgns.training.checkpoint import (
+        CONFIG_FILE,
+        LOG_FILE,
+        MODEL_DIR,
+        Checkpointer,
+        CheckpointError,
+        JsonlLog,
+        configs_from,
+        export_model,
+        read_json,
+        run_config,
+        write_json,
+    )
     from dispgns.training.loop import Validator, train
 
     run_dir = Path(args.out)
@@ -235,20 +282,28 @@ def run(args: argparse.Namespace) -> int:
         _check_fresh_run_dir(run_dir, overwrite=args.overwrite)
         normalization = compute_normalization(train_trajectories, noise_std=train_config.noise_std)
     if model_config.dim != metadata.dim:
-        raise CLIError(f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, but the model has "
-                       f"dim = {model_config.dim}")
+        raise CLIError(
+            f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, but the model has dim = {model_config.dim}"
+        )
     if tuple(map(tuple, metadata.bounds)) != model_config.bounds:
-        raise CLIError(f"{Path(args.data) / 'metadata.json'}: 'bounds' is {metadata.bounds}, but the model has "
-                       f"bounds = {model_config.bounds}")
+        raise CLIError(
+            f"{Path(args.data) / 'metadata.json'}: 'bounds' is {metadata.bounds}, but the model has "
+            f"bounds = {model_config.bounds}"
+        )
     try:
         stream = BatchStream.for_training(train_trajectories, model_config, train_config)
     except ValueError as error:
         raise CLIError(f"{Path(args.data) / 'train.h5'}: {error}") from None
     validator = Validator(valid, model_config, train_config) if valid else None
 
-    dataset_info = {"path": str(Path(args.data).absolute()), "preset": metadata.preset, "seed": metadata.seed,
-                    "trajectory_counts": dict(metadata.trajectory_counts), "frame_dt": metadata.frame_dt,
-                    "box_half_size": metadata.box_half_size}
+    dataset_info = {
+        "path": str(Path(args.data).absolute()),
+        "preset": metadata.preset,
+        "seed": metadata.seed,
+        "trajectory_counts": dict(metadata.trajectory_counts),
+        "frame_dt": metadata.frame_dt,
+        "box_half_size": metadata.box_half_size,
+    }
     config = run_config(model_config, train_config, normalization, dataset_info)
     init_key, key = jax.random.split(jax.random.key(train_config.seed))
     state = create_train_state(init_key, model_config, train_config, normalization)
@@ -276,26 +331,42 @@ def run(args: argparse.Namespace) -> int:
     def on_log(record):
         log.write(record)
         if record["kind"] == "validation":
-            shown = ", ".join(f"{k} {v:.4g}" for k, v in record.items() if k.startswith("valid_")
-                              and isinstance(v, float))
+            shown = ", ".join(
+                f"{k} {v:.4g}" for k, v in record.items() if k.startswith("valid_") and isinstance(v, float)
+            )
             progress.write(f"step {record['step']}: {shown}")
 
     try:
         with sigterm_as_interrupt():
-            result = train(state, stream, key, until_step=last, validator=validator, checkpointer=checkpointer,
-                           on_step=progress.step, on_log=on_log)
+            result = train(
+                state,
+                stream,
+                key,
+                until_step=last,
+                validator=validator,
+                checkpointer=checkpointer,
+                on_step=progress.step,
+                on_log=on_log,
+            )
     finally:
         progress.close()
         checkpointer.close()
     state = result.state
     records = log.read()
-    record = {"steps": int(state.step), "train": train_config.to_dict(), "dataset": dataset_info,
-              "last_validation": result.last_validation}
+    record = {
+        "steps": int(state.step),
+        "train": train_config.to_dict(),
+        "dataset": dataset_info,
+        "last_validation": result.last_validation,
+    }
     export_model(run_dir / MODEL_DIR, state.params, model_config, record)
     _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
     if result.interrupted:
-        print(f"interrupted at step {int(state.step)}; checkpoint saved in {run_dir}; continue with "
-              f"dispgns train --data {args.data} --out {args.out} --resume", file=sys.stderr)
+        print(
+            f"interrupted at step {int(state.step)}; checkpoint saved in {run_dir}; continue with "
+            f"dispgns train --data {args.data} --out {args.out} --resume",
+            file=sys.stderr,
+        )
         return 130
     print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
     return 0
@@ -310,5 +381,10 @@ def _plot_log(records, path: Path, plot) -> None:
         points = [(r["step"], r[key]) for r in records if r.get("kind") == "validation" and key in r]
         if points:
             validation[label] = ([p[0] for p in points], [p[1] for p in points])
-    plot([r["step"] for r in train], [r["loss"] for r in train], validation=validation or None,
-         smooth=10 if len(train) > 30 else 0, path=path)
+    plot(
+        [r["step"] for r in train],
+        [r["loss"] for r in train],
+        validation=validation or None,
+        smooth=10 if len(train) > 30 else 0,
+        path=path,
+    )

@@ -27,11 +27,28 @@ from dispgns.data.generate import (
 from dispgns.data.importers import import_authors_npz, read_authors_npz
 
 __all__ = [
-    "FORMAT_VERSION", "SPLITS", "DatasetError", "DatasetMetadata", "Trajectory", "load_dataset", "read_metadata",
-    "read_split", "validate_trajectory", "write_metadata", "write_split",
-    "PRESETS", "DatasetSpec", "RadiiGroup", "generate_dataset", "paper_spec", "preset", "sample_initial_states",
-    "tiny_spec", "trajectory_key",
-    "import_authors_npz", "read_authors_npz",
+    "FORMAT_VERSION",
+    "SPLITS",
+    "DatasetError",
+    "DatasetMetadata",
+    "Trajectory",
+    "load_dataset",
+    "read_metadata",
+    "read_split",
+    "validate_trajectory",
+    "write_metadata",
+    "write_split",
+    "PRESETS",
+    "DatasetSpec",
+    "RadiiGroup",
+    "generate_dataset",
+    "paper_spec",
+    "preset",
+    "sample_initial_states",
+    "tiny_spec",
+    "trajectory_key",
+    "import_authors_npz",
+    "read_authors_npz",
 ]
 
 # Training examples (windowing, padding) live in dispgns.data.examples.

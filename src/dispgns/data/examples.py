@@ -24,14 +24,22 @@ Units: positions and radii in normalised box units, as stored.
 from __future__ import annotations
 
 import math
-from typing import Any, Iterator, NamedTuple, Sequence
+from collections.abc import Iterator, Sequence
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from dispgns.graph import (CELL_LIST_MIN_PARTICLES, DEFAULT_BOUNDS, Bounds, GraphCapacity, cell_list_possible,
-                           host_count_pairs, host_max_cell_occupancy)
+from dispgns.graph import (
+    CELL_LIST_MIN_PARTICLES,
+    DEFAULT_BOUNDS,
+    Bounds,
+    GraphCapacity,
+    cell_list_possible,
+    host_count_pairs,
+    host_max_cell_occupancy,
+)
 
 
 @struct.dataclass
@@ -68,7 +76,7 @@ class Batch:
     def node_budget(self) -> int:
         return int(self.position.shape[2])
 
-    def with_capacity(self, capacity: GraphCapacity, edge_budget: int | None | str = "same") -> "Batch":
+    def with_capacity(self, capacity: GraphCapacity, edge_budget: int | None | str = "same") -> Batch:
         """The same examples with another graph capacity (and edge budget), e.g. after an overflow."""
         return self.replace(capacity=capacity, edge_budget=self.edge_budget if edge_budget == "same" else edge_budget)
 
@@ -95,8 +103,10 @@ def example_index(frame_counts: Sequence[int], window: int) -> ExampleIndex:
         m = max(0, int(t) - window + 1)
         traj.append(np.full((m,), k, np.int64))
         start.append(np.arange(m, dtype=np.int64))
-    return ExampleIndex(np.concatenate(traj) if traj else np.zeros((0,), np.int64),
-                        np.concatenate(start) if start else np.zeros((0,), np.int64))
+    return ExampleIndex(
+        np.concatenate(traj) if traj else np.zeros((0,), np.int64),
+        np.concatenate(start) if start else np.zeros((0,), np.int64),
+    )
 
 
 def _round_up(value: float, quantum: int) -> int:
@@ -139,11 +149,25 @@ class BatchStream:
         needs a box symmetric about 0.
     """
 
-    def __init__(self, trajectories: Sequence[Any], *, input_sequence_length: int, batch_size: int,
-                 connectivity_radius: float, seed: int = 0, pushforward_steps: int = 0, shuffle: bool = True,
-                 node_budgets: Sequence[int] | None = None, num_capacity_levels: int = 4,
-                 capacity_margin: float = 0.03, capacity_extra: int = 64, use_cell_list: bool | None = None,
-                 bounds: Bounds = DEFAULT_BOUNDS, compact_edges: bool = True, mirror: bool = False):
+    def __init__(
+        self,
+        trajectories: Sequence[Any],
+        *,
+        input_sequence_length: int,
+        batch_size: int,
+        connectivity_radius: float,
+        seed: int = 0,
+        pushforward_steps: int = 0,
+        shuffle: bool = True,
+        node_budgets: Sequence[int] | None = None,
+        num_capacity_levels: int = 4,
+        capacity_margin: float = 0.03,
+        capacity_extra: int = 64,
+        use_cell_list: bool | None = None,
+        bounds: Bounds = DEFAULT_BOUNDS,
+        compact_edges: bool = True,
+        mirror: bool = False,
+    ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.input_sequence_length = int(input_sequence_length)
@@ -163,8 +187,9 @@ class BatchStream:
             x = np.asarray(traj.position, np.float32)
             a = np.asarray(traj.radius, np.float32)
             if x.ndim != 3 or a.shape != (x.shape[1],):
-                raise ValueError(f"trajectory {k}: expected position (T, N, D) and radius (N,), "
-                                 f"got {x.shape} and {a.shape}")
+                raise ValueError(
+                    f"trajectory {k}: expected position (T, N, D) and radius (N,), got {x.shape} and {a.shape}"
+                )
             self.positions.append(x)
             self.radii.append(a)
         if not self.positions:
@@ -175,8 +200,9 @@ class BatchStream:
         self.dim = dims.pop()
         self.index = example_index([x.shape[0] for x in self.positions], self.window)
         if len(self.index) < self.batch_size:
-            raise ValueError(f"{len(self.index)} examples of {self.window} frames, fewer than one batch of "
-                             f"{self.batch_size}")
+            raise ValueError(
+                f"{len(self.index)} examples of {self.window} frames, fewer than one batch of {self.batch_size}"
+            )
 
         max_n = max(x.shape[1] for x in self.positions)
         self.node_budgets = sorted({int(b) for b in node_budgets}) if node_budgets else [_round_up(max_n, 8)]
@@ -187,8 +213,13 @@ class BatchStream:
         # pushforward, the frames the model will have predicted.
         c = self.input_sequence_length
         per_frame = [host_count_pairs(x, connectivity_radius=self.connectivity_radius) for x in self.positions]
-        self.pairs = np.array([per_frame[t][s + c - 1:s + c + self.pushforward_steps].max()
-                               for t, s in zip(self.index.trajectory, self.index.start)], np.int64)
+        self.pairs = np.array(
+            [
+                per_frame[t][s + c - 1 : s + c + self.pushforward_steps].max()
+                for t, s in zip(self.index.trajectory, self.index.start)
+            ],
+            np.int64,
+        )
         levels = np.arange(1, num_capacity_levels + 1) / num_capacity_levels
         self.compact_edges = bool(compact_edges)
         self.edge_levels = None
@@ -204,20 +235,30 @@ class BatchStream:
         self.cell_capacity = None
         if use_cell_list is None:
             use_cell_list = self.node_budgets[-1] >= CELL_LIST_MIN_PARTICLES and cell_list_possible(
-                self.positions[0].shape[-1], connectivity_radius=self.connectivity_radius, bounds=bounds)
+                self.positions[0].shape[-1], connectivity_radius=self.connectivity_radius, bounds=bounds
+            )
         if use_cell_list:
-            occupancy = max(host_max_cell_occupancy(x, connectivity_radius=self.connectivity_radius, bounds=bounds)
-                            for x in self.positions)
+            occupancy = max(
+                host_max_cell_occupancy(x, connectivity_radius=self.connectivity_radius, bounds=bounds)
+                for x in self.positions
+            )
             self.cell_capacity = occupancy + max(2, occupancy // 4)
         self.position = 0
 
     @classmethod
-    def for_training(cls, trajectories, model_config, train_config, **kwargs) -> "BatchStream":
+    def for_training(cls, trajectories, model_config, train_config, **kwargs) -> BatchStream:
         """The stream a run with these configs needs (``C``, ``B``, radius, seed, pushforward, box)."""
-        return cls(trajectories, input_sequence_length=model_config.input_sequence_length,
-                   batch_size=train_config.batch_size, connectivity_radius=model_config.connectivity_radius,
-                   seed=train_config.seed, pushforward_steps=train_config.pushforward_steps,
-                   bounds=model_config.bounds, mirror=train_config.mirror_augmentation, **kwargs)
+        return cls(
+            trajectories,
+            input_sequence_length=model_config.input_sequence_length,
+            batch_size=train_config.batch_size,
+            connectivity_radius=model_config.connectivity_radius,
+            seed=train_config.seed,
+            pushforward_steps=train_config.pushforward_steps,
+            bounds=model_config.bounds,
+            mirror=train_config.mirror_augmentation,
+            **kwargs,
+        )
 
     # -- sizes ---------------------------------------------------------------------------------
     @property
@@ -234,8 +275,11 @@ class BatchStream:
     def _edge_need(self, ids) -> int:
         """Edge slots the merged graph of examples ``ids`` needs: pairs with head-room plus every self-loop."""
         pairs = self.pairs[np.asarray(ids, np.int64)]
-        return _round_up(float(np.sum(pairs * (1.0 + self.capacity_margin) + self.capacity_extra))
-                         + len(pairs) * self._node_budget(ids), 64)
+        return _round_up(
+            float(np.sum(pairs * (1.0 + self.capacity_margin) + self.capacity_extra))
+            + len(pairs) * self._node_budget(ids),
+            64,
+        )
 
     def _node_budget(self, ids) -> int:
         n_max = max(self.positions[t].shape[1] for t in self.index.trajectory[np.asarray(ids, np.int64)])
@@ -276,7 +320,7 @@ class BatchStream:
         if i < 0:
             raise ValueError(f"batch index must be >= 0, got {i}")
         epoch, j = divmod(int(i), self.batches_per_epoch)
-        return self.epoch_order(epoch)[j * self.batch_size:(j + 1) * self.batch_size]
+        return self.epoch_order(epoch)[j * self.batch_size : (j + 1) * self.batch_size]
 
     def batch(self, i: int) -> Batch:
         """Batch ``i`` (a pure function of ``seed`` and ``i``)."""
@@ -303,15 +347,21 @@ class BatchStream:
         mask = np.zeros((b, nodes), bool)
         for k, (t, s) in enumerate(zip(trajs, starts)):
             n = self.positions[t].shape[1]
-            position[k, :, :n] = self.positions[t][s:s + self.window]
+            position[k, :, :n] = self.positions[t][s : s + self.window]
             if flips is not None:
                 position[k, :, :n, :-1] *= np.where(flips[k], -1.0, 1.0).astype(np.float32)
             radius[k, :n] = self.radii[t]
             mask[k, :n] = True
         capacity = self.capacity_for_pairs(int(self.pairs[ids].max()))
         example = np.stack([trajs, starts], axis=1).astype(np.int32)
-        return Batch(position=position, radius=radius, mask=mask, example=example, capacity=capacity,
-                     edge_budget=self.edge_budget_for(ids))
+        return Batch(
+            position=position,
+            radius=radius,
+            mask=mask,
+            example=example,
+            capacity=capacity,
+            edge_budget=self.edge_budget_for(ids),
+        )
 
     # -- iteration -------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[Batch]:

@@ -35,8 +35,9 @@ import os
 import shutil
 import tempfile
 import uuid
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any
 
 import h5py
 import numpy as np
@@ -138,14 +139,23 @@ def _check_array(where: str, name: str, value, shape: tuple, kind: str, dtype=No
         _fail(where, f"'{name}' has dtype {value.dtype}, expected an integer dtype")
     if kind == "float" and not np.all(np.isfinite(value)):
         bad = np.argwhere(~np.isfinite(value))[0]
-        _fail(where, f"'{name}' has a non-finite value {value[tuple(bad)]} at index {tuple(int(i) for i in bad)}, "
-                     f"expected finite values")
+        _fail(
+            where,
+            f"'{name}' has a non-finite value {value[tuple(bad)]} at index {tuple(int(i) for i in bad)}, "
+            f"expected finite values",
+        )
     return value
 
 
-def validate_trajectory(trajectory: Trajectory, where: str, *, dim: int | None = None,
-                        n_frames: int | None = None, box_half_size: float | None = None,
-                        predicted: bool = False) -> None:
+def validate_trajectory(
+    trajectory: Trajectory,
+    where: str,
+    *,
+    dim: int | None = None,
+    n_frames: int | None = None,
+    box_half_size: float | None = None,
+    predicted: bool = False,
+) -> None:
     """Check every field of ``trajectory``; raise :class:`DatasetError` prefixed with ``where``.
 
     Args:
@@ -158,16 +168,20 @@ def validate_trajectory(trajectory: Trajectory, where: str, *, dim: int | None =
         by ``dispgns evaluate``): they may leave the box or diverge to
         non-finite values, which are then stored as they are.
     """
-    position = _check_array(where, "position", trajectory.position, (n_frames, None, dim),
-                            "any" if predicted else "float", np.float32)
+    position = _check_array(
+        where, "position", trajectory.position, (n_frames, None, dim), "any" if predicted else "float", np.float32
+    )
     t, n, d = position.shape
     if t < 1 or n < 1 or d < 1:
         _fail(where, f"'position' has shape {position.shape}, expected at least one frame, particle and axis")
     outside = np.abs(position) > 1.0 + BOX_TOLERANCE
     if outside.any() and not predicted:
         frame, particle, axis = (int(i) for i in np.argwhere(outside)[0])
-        _fail(where, f"'position' frame {frame} particle {particle} axis {axis} is "
-                     f"{position[frame, particle, axis]:.6g}, expected inside the box [-1, 1]")
+        _fail(
+            where,
+            f"'position' frame {frame} particle {particle} axis {axis} is "
+            f"{position[frame, particle, axis]:.6g}, expected inside the box [-1, 1]",
+        )
     radius = _check_array(where, "radius", trajectory.radius, (n,), "float", np.float32)
     if not np.all((radius > 0) & (radius < 1)):
         bad = int(np.argmax(~((radius > 0) & (radius < 1))))
@@ -189,18 +203,27 @@ def validate_trajectory(trajectory: Trajectory, where: str, *, dim: int | None =
         scaled = x0 / box_half_size
         if np.any(np.abs(scaled) > 1.0 + BOX_TOLERANCE):
             particle, axis = (int(i) for i in np.argwhere(np.abs(scaled) > 1.0 + BOX_TOLERANCE)[0])
-            _fail(where, f"'initial_position' particle {particle} axis {axis} is {x0[particle, axis]:.6g} m, "
-                         f"expected inside the box [-{box_half_size}, {box_half_size}] m")
+            _fail(
+                where,
+                f"'initial_position' particle {particle} axis {axis} is {x0[particle, axis]:.6g} m, "
+                f"expected inside the box [-{box_half_size}, {box_half_size}] m",
+            )
         gap = np.abs(scaled - position[0])
         if np.any(gap > INITIAL_STATE_TOLERANCE):
             particle, axis = (int(i) for i in np.argwhere(gap > INITIAL_STATE_TOLERANCE)[0])
-            _fail(where, f"'initial_position' / L differs from 'position' frame 0 by {gap.max():.3g} "
-                         f"(particle {particle}, axis {axis}), expected at most {INITIAL_STATE_TOLERANCE}")
+            _fail(
+                where,
+                f"'initial_position' / L differs from 'position' frame 0 by {gap.max():.3g} "
+                f"(particle {particle}, axis {axis}), expected at most {INITIAL_STATE_TOLERANCE}",
+            )
         radius_gap = np.abs(a0 / box_half_size - radius)
         if np.any(radius_gap > INITIAL_STATE_TOLERANCE):
             particle = int(np.argmax(radius_gap))
-            _fail(where, f"'initial_radius' / L differs from 'radius' by {radius_gap.max():.3g} "
-                         f"(particle {particle}), expected at most {INITIAL_STATE_TOLERANCE}")
+            _fail(
+                where,
+                f"'initial_radius' / L differs from 'radius' by {radius_gap.max():.3g} "
+                f"(particle {particle}), expected at most {INITIAL_STATE_TOLERANCE}",
+            )
 
 
 # ----------------------------------------------------------------------------- metadata
@@ -288,78 +311,123 @@ class DatasetMetadata:
 
     def validate(self, where: str = METADATA_FILE) -> None:
         """Check the fields' values and their mutual consistency."""
+
         def need(condition, message):
             if not condition:
                 _fail(where, message)
 
         need(isinstance(self.dim, int) and self.dim in (2, 3), f"'dim' is {self.dim!r}, expected 2 or 3")
-        need(isinstance(self.sequence_length, int) and self.sequence_length >= 1,
-             f"'sequence_length' is {self.sequence_length!r}, expected an integer >= 1")
-        need(isinstance(self.save_every, int) and self.save_every >= 1,
-             f"'save_every' is {self.save_every!r}, expected an integer >= 1")
+        need(
+            isinstance(self.sequence_length, int) and self.sequence_length >= 1,
+            f"'sequence_length' is {self.sequence_length!r}, expected an integer >= 1",
+        )
+        need(
+            isinstance(self.save_every, int) and self.save_every >= 1,
+            f"'save_every' is {self.save_every!r}, expected an integer >= 1",
+        )
         for name in ("frame_dt", "box_half_size", "connectivity_radius"):
             value = getattr(self, name)
-            need(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
-                 f"'{name}' is {value!r}, expected a finite number > 0")
-        need(self.format_version == FORMAT_VERSION,
-             f"'format_version' is {self.format_version!r}, expected {FORMAT_VERSION} (this dispgns reads "
-             f"format {FORMAT_VERSION} only)")
-        need(self.bounds == tuple((-1.0, 1.0) for _ in range(self.dim)),
-             f"'bounds' is {self.bounds!r}, expected {[[-1.0, 1.0]] * self.dim}")
-        need(isinstance(self.trajectory_counts, Mapping) and len(self.trajectory_counts) > 0,
-             f"'trajectory_counts' is {self.trajectory_counts!r}, expected a mapping split -> count")
+            need(
+                isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+                f"'{name}' is {value!r}, expected a finite number > 0",
+            )
+        need(
+            self.format_version == FORMAT_VERSION,
+            f"'format_version' is {self.format_version!r}, expected {FORMAT_VERSION} (this dispgns reads "
+            f"format {FORMAT_VERSION} only)",
+        )
+        need(
+            self.bounds == tuple((-1.0, 1.0) for _ in range(self.dim)),
+            f"'bounds' is {self.bounds!r}, expected {[[-1.0, 1.0]] * self.dim}",
+        )
+        need(
+            isinstance(self.trajectory_counts, Mapping) and len(self.trajectory_counts) > 0,
+            f"'trajectory_counts' is {self.trajectory_counts!r}, expected a mapping split -> count",
+        )
         for split, count in self.trajectory_counts.items():
             need(split in SPLITS, f"'trajectory_counts' has unknown split {split!r}, expected one of {list(SPLITS)}")
-            need(_is_int(count) and count >= 1,
-                 f"'trajectory_counts'[{split!r}] is {count!r}, expected an integer >= 1")
-        need(isinstance(self.radii, Mapping) and set(self.radii) == set(self.trajectory_counts),
-             f"'radii' has splits {sorted(self.radii) if isinstance(self.radii, Mapping) else self.radii!r}, "
-             f"expected {sorted(self.trajectory_counts)}")
+            need(
+                _is_int(count) and count >= 1, f"'trajectory_counts'[{split!r}] is {count!r}, expected an integer >= 1"
+            )
+        need(
+            isinstance(self.radii, Mapping) and set(self.radii) == set(self.trajectory_counts),
+            f"'radii' has splits {sorted(self.radii) if isinstance(self.radii, Mapping) else self.radii!r}, "
+            f"expected {sorted(self.trajectory_counts)}",
+        )
         for split, groups in self.radii.items():
             total = 0
             for group in groups:
-                need(isinstance(group, Mapping) and {"count", "radii_m"} <= set(group),
-                     f"'radii'[{split!r}] entry {group!r}, expected a mapping with 'count' and 'radii_m'")
-                need(_is_int(group["count"]) and group["count"] >= 0,
-                     f"'radii'[{split!r}] count {group['count']!r}, expected an integer >= 0")
+                need(
+                    isinstance(group, Mapping) and {"count", "radii_m"} <= set(group),
+                    f"'radii'[{split!r}] entry {group!r}, expected a mapping with 'count' and 'radii_m'",
+                )
+                need(
+                    _is_int(group["count"]) and group["count"] >= 0,
+                    f"'radii'[{split!r}] count {group['count']!r}, expected an integer >= 0",
+                )
                 radii_m = group["radii_m"]
-                need(isinstance(radii_m, Sequence) and not isinstance(radii_m, str) and len(radii_m) > 0
-                     and all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
-                             for r in radii_m),
-                     f"'radii'[{split!r}] radii_m {radii_m!r}, expected a non-empty list of radii > 0 (m)")
+                need(
+                    isinstance(radii_m, Sequence)
+                    and not isinstance(radii_m, str)
+                    and len(radii_m) > 0
+                    and all(
+                        isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+                        for r in radii_m
+                    ),
+                    f"'radii'[{split!r}] radii_m {radii_m!r}, expected a non-empty list of radii > 0 (m)",
+                )
                 total += group["count"]
-            need(total == self.trajectory_counts[split],
-                 f"'radii'[{split!r}] groups hold {total} trajectories, expected "
-                 f"{self.trajectory_counts[split]} (trajectory_counts)")
-        need(isinstance(self.has_initial_state, bool),
-             f"'has_initial_state' is {self.has_initial_state!r}, expected true or false")
-        need(self.seed is None or (_is_int(self.seed) and 0 <= self.seed < 2**32),
-             f"'seed' is {self.seed!r}, expected null or an integer in [0, 2^32)")
-        need(self.split_ids is None or (isinstance(self.split_ids, Mapping)
-                                        and all(_is_int(v) for v in self.split_ids.values())),
-             f"'split_ids' is {self.split_ids!r}, expected null or a mapping split -> integer")
+            need(
+                total == self.trajectory_counts[split],
+                f"'radii'[{split!r}] groups hold {total} trajectories, expected "
+                f"{self.trajectory_counts[split]} (trajectory_counts)",
+            )
+        need(
+            isinstance(self.has_initial_state, bool),
+            f"'has_initial_state' is {self.has_initial_state!r}, expected true or false",
+        )
+        need(
+            self.seed is None or (_is_int(self.seed) and 0 <= self.seed < 2**32),
+            f"'seed' is {self.seed!r}, expected null or an integer in [0, 2^32)",
+        )
+        need(
+            self.split_ids is None
+            or (isinstance(self.split_ids, Mapping) and all(_is_int(v) for v in self.split_ids.values())),
+            f"'split_ids' is {self.split_ids!r}, expected null or a mapping split -> integer",
+        )
         need(isinstance(self.source, str), f"'source' is {self.source!r}, expected a string")
-        need(self.batch_size is None or (_is_int(self.batch_size) and self.batch_size >= 1),
-             f"'batch_size' is {self.batch_size!r}, expected null or an integer >= 1")
+        need(
+            self.batch_size is None or (_is_int(self.batch_size) and self.batch_size >= 1),
+            f"'batch_size' is {self.batch_size!r}, expected null or an integer >= 1",
+        )
         if self.particle_counts is not None:
-            need(isinstance(self.particle_counts, Mapping) and set(self.particle_counts) == set(self.trajectory_counts),
-                 f"'particle_counts' has splits {sorted(self.particle_counts)}, expected "
-                 f"{sorted(self.trajectory_counts)}")
+            need(
+                isinstance(self.particle_counts, Mapping) and set(self.particle_counts) == set(self.trajectory_counts),
+                f"'particle_counts' has splits {sorted(self.particle_counts)}, expected "
+                f"{sorted(self.trajectory_counts)}",
+            )
             for split, values in self.particle_counts.items():
-                need(len(values) == self.trajectory_counts[split]
-                     and all(isinstance(v, int) and v >= 1 for v in values),
-                     f"'particle_counts'[{split!r}] is {list(values)}, expected "
-                     f"{self.trajectory_counts[split]} integers >= 1")
+                need(
+                    len(values) == self.trajectory_counts[split] and all(isinstance(v, int) and v >= 1 for v in values),
+                    f"'particle_counts'[{split!r}] is {list(values)}, expected "
+                    f"{self.trajectory_counts[split]} integers >= 1",
+                )
         try:
             config = self.physics_config
         except (TypeError, ValueError) as error:
             _fail(where, f"'physics' is not a valid PhysicsConfig: {error}")
-        need(math.isclose(config.box_half_size, self.box_half_size, rel_tol=1e-12),
-             f"'box_half_size' is {self.box_half_size}, expected physics.box_half_size = {config.box_half_size}")
-        need(math.isclose(self.frame_dt, self.save_every * config.dt, rel_tol=1e-9),
-             f"'frame_dt' is {self.frame_dt}, expected save_every * physics.dt = {self.save_every * config.dt}")
-        need(self.precision in (None, "float32", "float64"),
-             f"'precision' is {self.precision!r}, expected 'float32', 'float64' or null")
+        need(
+            math.isclose(config.box_half_size, self.box_half_size, rel_tol=1e-12),
+            f"'box_half_size' is {self.box_half_size}, expected physics.box_half_size = {config.box_half_size}",
+        )
+        need(
+            math.isclose(self.frame_dt, self.save_every * config.dt, rel_tol=1e-9),
+            f"'frame_dt' is {self.frame_dt}, expected save_every * physics.dt = {self.save_every * config.dt}",
+        )
+        need(
+            self.precision in (None, "float32", "float64"),
+            f"'precision' is {self.precision!r}, expected 'float32', 'float64' or null",
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-compatible dict (lists instead of tuples)."""
@@ -383,13 +451,14 @@ class DatasetMetadata:
             "batch_size": self.batch_size,
             "key_derivation": self.key_derivation,
             "split_ids": None if self.split_ids is None else dict(self.split_ids),
-            "particle_counts": None if self.particle_counts is None
+            "particle_counts": None
+            if self.particle_counts is None
             else {s: list(self.particle_counts[s]) for s in self.splits},
             "physics": dict(self.physics),
         }
 
     @classmethod
-    def from_dict(cls, values: Mapping[str, Any], where: str = METADATA_FILE) -> "DatasetMetadata":
+    def from_dict(cls, values: Mapping[str, Any], where: str = METADATA_FILE) -> DatasetMetadata:
         """Inverse of :meth:`to_dict`; raises :class:`DatasetError` on missing or unknown fields."""
         if not isinstance(values, Mapping):
             _fail(where, f"expected a JSON object, got {type(values).__name__}")
@@ -397,8 +466,11 @@ class DatasetMetadata:
         unknown = sorted(set(values) - set(fields))
         if unknown:
             _fail(where, f"unknown field(s) {unknown}, expected a subset of {sorted(fields)}")
-        required = [name for name, f in fields.items()
-                    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+        required = [
+            name
+            for name, f in fields.items()
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        ]
         for name in required:
             if name not in values:
                 _fail(where, f"missing field {name!r}")
@@ -455,8 +527,13 @@ def _json_value(value):
     return value
 
 
-def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory], *,
-                box_half_size: float | None = None, predicted: bool = False) -> Path:
+def write_split(
+    path: str | os.PathLike,
+    trajectories: Iterable[Trajectory],
+    *,
+    box_half_size: float | None = None,
+    predicted: bool = False,
+) -> Path:
     """Validate and write one split file atomically.
 
     The file is written under a temporary name in the same directory and
@@ -479,8 +556,13 @@ def write_split(path: str | os.PathLike, trajectories: Iterable[Trajectory], *,
         raise DatasetError(f"{path.name}: no trajectories to write, expected at least one")
     dim = trajectories[0].position.shape[-1] if np.ndim(trajectories[0].position) == 3 else None
     for index, trajectory in enumerate(trajectories):
-        validate_trajectory(trajectory, f"{path.name}: trajectory {trajectory_name(index)}", dim=dim,
-                            box_half_size=box_half_size, predicted=predicted)
+        validate_trajectory(
+            trajectory,
+            f"{path.name}: trajectory {trajectory_name(index)}",
+            dim=dim,
+            box_half_size=box_half_size,
+            predicted=predicted,
+        )
     temporary = _temporary_path(path)
     try:
         with h5py.File(temporary, "w") as file:
@@ -527,11 +609,12 @@ def _check_target(out_dir: Path, overwrite: bool, marker: str = METADATA_FILE, k
             raise FileExistsError(f"{out_dir} exists and is not a directory")
         if any(out_dir.iterdir()):
             if not overwrite:
-                raise FileExistsError(f"{out_dir} exists and is not empty; choose another directory or "
-                                      f"allow overwriting it (overwrite=True, --overwrite)")
+                raise FileExistsError(
+                    f"{out_dir} exists and is not empty; choose another directory or "
+                    f"allow overwriting it (overwrite=True, --overwrite)"
+                )
             if not (out_dir / marker).is_file():
-                raise FileExistsError(f"refusing to overwrite {out_dir}: it is not a dispgns {kind} "
-                                      f"(no {marker})")
+                raise FileExistsError(f"refusing to overwrite {out_dir}: it is not a dispgns {kind} (no {marker})")
 
 
 def _move_into_place(staging: Path, out_dir: Path) -> None:
@@ -552,8 +635,9 @@ def _move_into_place(staging: Path, out_dir: Path) -> None:
 
 
 @contextlib.contextmanager
-def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False, marker: str = METADATA_FILE,
-                     kind: str = "dataset") -> Iterator[Path]:
+def staged_directory(
+    out_dir: str | os.PathLike, *, overwrite: bool = False, marker: str = METADATA_FILE, kind: str = "dataset"
+) -> Iterator[Path]:
     """Build an output directory (by default a dataset) atomically.
 
     Yields a fresh temporary directory beside ``out_dir`` (same file system);
@@ -636,8 +720,9 @@ def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None)
         raise
     except (OSError, RuntimeError, KeyError, TypeError, ValueError) as error:
         # h5py reports damage inside a file that opened as any of these.
-        raise DatasetError(f"{name}: cannot be read, the file is damaged or not written by dispgns "
-                           f"({type(error).__name__}: {error})") from None
+        raise DatasetError(
+            f"{name}: cannot be read, the file is damaged or not written by dispgns ({type(error).__name__}: {error})"
+        ) from None
 
 
 def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajectory]:
@@ -655,8 +740,11 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
         for index, group_name in enumerate(groups):
             where = f"{name}: trajectory {group_name}"
             if group_name != trajectory_name(index):
-                _fail(name, f"group {group_name!r} found where {trajectory_name(index)!r} was expected "
-                            f"(groups must be numbered 00000, 00001, ... without gaps)")
+                _fail(
+                    name,
+                    f"group {group_name!r} found where {trajectory_name(index)!r} was expected "
+                    f"(groups must be numbered 00000, 00001, ... without gaps)",
+                )
             group = file[group_name]
             if not isinstance(group, h5py.Group):
                 _fail(where, "is not an HDF5 group")
@@ -672,26 +760,36 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
                 has_initial = all(f in fields for f in _INITIAL_FIELDS)
                 if metadata.has_initial_state and not has_initial:
                     missing = next(f for f in _INITIAL_FIELDS if f not in fields)
-                    _fail(where, f"missing field {missing!r}, expected because metadata.json has "
-                                 f"has_initial_state = true")
+                    _fail(
+                        where, f"missing field {missing!r}, expected because metadata.json has has_initial_state = true"
+                    )
             attrs = {key: _json_value(value) for key, value in group.attrs.items()}
             trajectory = Trajectory(attrs=attrs, **fields)
             if dim is None:
                 dim = trajectory.dim if np.ndim(trajectory.position) == 3 else None
             if n_frames is None and np.ndim(trajectory.position) == 3:
                 n_frames = trajectory.n_frames
-            validate_trajectory(trajectory, where, dim=dim, n_frames=n_frames,
-                                box_half_size=None if metadata is None else metadata.box_half_size,
-                                predicted=predicted)
+            validate_trajectory(
+                trajectory,
+                where,
+                dim=dim,
+                n_frames=n_frames,
+                box_half_size=None if metadata is None else metadata.box_half_size,
+                predicted=predicted,
+            )
             if "particles" in expected and trajectory.n_particles != expected["particles"][index]:
-                _fail(where, f"'position' holds {trajectory.n_particles} particles, expected "
-                             f"{expected['particles'][index]} (metadata.json particle_counts)")
+                _fail(
+                    where,
+                    f"'position' holds {trajectory.n_particles} particles, expected "
+                    f"{expected['particles'][index]} (metadata.json particle_counts)",
+                )
             trajectories.append(trajectory)
     return trajectories
 
 
-def load_dataset(directory: str | os.PathLike, splits: Sequence[str] | None = None
-                 ) -> tuple[DatasetMetadata, dict[str, list[Trajectory]]]:
+def load_dataset(
+    directory: str | os.PathLike, splits: Sequence[str] | None = None
+) -> tuple[DatasetMetadata, dict[str, list[Trajectory]]]:
     """Read ``metadata.json`` and the requested split files, validating everything.
 
     Args:
@@ -710,8 +808,9 @@ def load_dataset(directory: str | os.PathLike, splits: Sequence[str] | None = No
     result = {}
     for split in splits:
         if split not in metadata.trajectory_counts:
-            raise DatasetError(f"{directory / METADATA_FILE}: no split {split!r}; the dataset has "
-                               f"{list(metadata.splits)}")
+            raise DatasetError(
+                f"{directory / METADATA_FILE}: no split {split!r}; the dataset has {list(metadata.splits)}"
+            )
         result[split] = read_split(directory / split_filename(split), metadata)
     return metadata, result
 
@@ -719,7 +818,10 @@ def load_dataset(directory: str | os.PathLike, splits: Sequence[str] | None = No
 def radii_groups(groups: Iterable[tuple[int, Sequence[float]]]) -> list[dict[str, Any]]:
     """Metadata entries ``{"count", "radii_m", "radii_mm"}`` for ``(count, radii in m)`` pairs."""
     return [
-        {"count": int(count), "radii_m": [float(r) for r in radii],
-         "radii_mm": [round(float(r) * 1e3, 9) for r in radii]}
+        {
+            "count": int(count),
+            "radii_m": [float(r) for r in radii],
+            "radii_mm": [round(float(r) * 1e3, 9) for r in radii],
+        }
         for count, radii in groups
     ]

@@ -26,7 +26,8 @@ import itertools
 import math
 import os
 import threading
-from typing import Callable, Mapping, NamedTuple, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -108,8 +109,10 @@ class DatasetSpec:
             raise ValueError(f"unknown split(s) {unknown}, expected some of {list(SPLITS)}")
         splits = {}
         for split in SPLITS:
-            groups = tuple(g if isinstance(g, RadiiGroup) else RadiiGroup(int(g[0]), tuple(g[1]))
-                           for g in self.splits.get(split, ()))
+            groups = tuple(
+                g if isinstance(g, RadiiGroup) else RadiiGroup(int(g[0]), tuple(g[1]))
+                for g in self.splits.get(split, ())
+            )
             groups = tuple(g for g in groups if g.count > 0)
             if groups:
                 splits[split] = groups
@@ -128,8 +131,10 @@ class DatasetSpec:
         for split, groups in splits.items():
             for group in groups:
                 if max(group.radii_m) >= half / 2:
-                    raise ValueError(f"{split}: radius {max(group.radii_m)} m does not fit the box: expected "
-                                     f"radii below L/2 = {half / 2} m")
+                    raise ValueError(
+                        f"{split}: radius {max(group.radii_m)} m does not fit the box: expected "
+                        f"radii below L/2 = {half / 2} m"
+                    )
 
     @property
     def counts(self) -> dict[str, int]:
@@ -158,10 +163,15 @@ class DatasetSpec:
                     index += 1
         return out
 
-    def replace(self, *, n_frames: int | None = None, counts: Mapping[str, int] | None = None,
-                radii_m: Sequence[float] | None = None,
-                unseen_radii_m: Sequence[Sequence[float]] | None = None,
-                precision: str | None = None) -> "DatasetSpec":
+    def replace(
+        self,
+        *,
+        n_frames: int | None = None,
+        counts: Mapping[str, int] | None = None,
+        radii_m: Sequence[float] | None = None,
+        unseen_radii_m: Sequence[Sequence[float]] | None = None,
+        precision: str | None = None,
+    ) -> DatasetSpec:
         """A modified copy.
 
         Args:
@@ -275,10 +285,16 @@ class _Draw(NamedTuple):
     n_particles: int
 
 
-def sample_initial_states(keys: Sequence[jax.Array], radii_lists: Sequence[Sequence[float]],
-                          config: PhysicsConfig = PhysicsConfig(), *, dim: int = 2, dtype=jnp.float32,
-                          progress: Callable[[int], None] | None = None,
-                          labels: Sequence[str] | None = None) -> list[InitialState]:
+def sample_initial_states(
+    keys: Sequence[jax.Array],
+    radii_lists: Sequence[Sequence[float]],
+    config: PhysicsConfig = PhysicsConfig(),
+    *,
+    dim: int = 2,
+    dtype=jnp.float32,
+    progress: Callable[[int], None] | None = None,
+    labels: Sequence[str] | None = None,
+) -> list[InitialState]:
     """Many :func:`~dispgns.physics.sample_initial_state` draws, with one compilation.
 
     ``sample_initial_state`` jit-compiles its placement loop for every
@@ -327,8 +343,7 @@ def sample_initial_states(keys: Sequence[jax.Array], radii_lists: Sequence[Seque
         low, high = particle_count_range(start_height, max(radii), config, dim)
         n_particles = int(jax.random.randint(subkeys[1], (), low, high + 1))
         if start_height + 2 * max(radii) > half:
-            raise PlacementError(f"{label}: start height {start_height} m leaves no room for radius "
-                                 f"{max(radii)} m")
+            raise PlacementError(f"{label}: start height {start_height} m leaves no room for radius {max(radii)} m")
         draws.append(_Draw(subkeys, start_height, n_particles))
     n_pad = max(d.n_particles for d in draws)
     states = []
@@ -348,7 +363,8 @@ def sample_initial_states(keys: Sequence[jax.Array], radii_lists: Sequence[Seque
             raise PlacementError(
                 f"{label}: could not place particle {first} of {n} (radius {radius[first]:.4g} m) without "
                 f"overlap; the packing is too dense for the radii {list(radii)} m above y0 = "
-                f"{draw.start_height:.4g} m. Use fewer particles or a wider spread of radii.")
+                f"{draw.start_height:.4g} m. Use fewer particles or a wider spread of radii."
+            )
         # Step 5, as in sample_initial_state.
         vs = config.settling_speed(float(choices.min()))
         velocity = jax.random.uniform(draw.keys[4], (dim,), dtype, -vs, vs)
@@ -378,8 +394,10 @@ LANES = 2
 
 
 def _group_costs(counts: Sequence[int], cuts: Sequence[int], n_steps: int) -> list[float]:
-    return [_SECONDS_PER_COMPILE + _SECONDS_PER_PAIR_STEP * n_steps * (end - start) * counts[end - 1] ** 2
-            for start, end in zip(cuts[:-1], cuts[1:])]
+    return [
+        _SECONDS_PER_COMPILE + _SECONDS_PER_PAIR_STEP * n_steps * (end - start) * counts[end - 1] ** 2
+        for start, end in zip(cuts[:-1], cuts[1:])
+    ]
 
 
 def _makespan(costs: Sequence[float], lanes: int) -> float:
@@ -390,8 +408,9 @@ def _makespan(costs: Sequence[float], lanes: int) -> float:
     return max(loads)
 
 
-def _balance(counts: Sequence[int], cuts: list[int], n_steps: int, size: int, lanes: int,
-             max_groups: int = 4) -> list[int]:
+def _balance(
+    counts: Sequence[int], cuts: list[int], n_steps: int, size: int, lanes: int, max_groups: int = 4
+) -> list[int]:
     """Cuts (starting from ``cuts``) with the shortest estimated wall time on ``lanes`` workers.
 
     Up to ``max_groups`` groups are searched exhaustively when that is cheap
@@ -425,8 +444,9 @@ def _balance(counts: Sequence[int], cuts: list[int], n_steps: int, size: int, la
         best, best_score = candidate, candidate_score
 
 
-def plan_batches(particle_counts: Sequence[int], n_steps: int, *, batch_size: int | None = None,
-                 lanes: int = LANES) -> list[list[int]]:
+def plan_batches(
+    particle_counts: Sequence[int], n_steps: int, *, batch_size: int | None = None, lanes: int = LANES
+) -> list[list[int]]:
     """Group trajectories for concurrent :func:`~dispgns.physics.simulate_batch` calls.
 
     Trajectories are sorted by particle count and cut into contiguous
@@ -473,8 +493,9 @@ class _Cancelled(Exception):
     """Raised inside a worker's progress callback to stop its simulation early."""
 
 
-def _simulate_groups(groups: list[list[int]], states: Sequence[InitialState], spec: "DatasetSpec", dtype,
-                     report: ProgressFn, lanes: int) -> list[np.ndarray]:
+def _simulate_groups(
+    groups: list[list[int]], states: Sequence[InitialState], spec: DatasetSpec, dtype, report: ProgressFn, lanes: int
+) -> list[np.ndarray]:
     """Simulate every group (concurrently, up to ``lanes`` at a time); positions per trajectory in m."""
     counts = [int(s.position.shape[0]) for s in states]
     positions: list[np.ndarray | None] = [None] * len(states)
@@ -511,8 +532,18 @@ def _simulate_groups(groups: list[list[int]], states: Sequence[InitialState], sp
                 # Frames per trajectory, averaged over the groups.
                 report("simulate", sum(frames_done) // len(groups), spec.n_frames)
 
-        xs = np.asarray(simulate_batch(x0, v0, radius, mask, spec.physics, n_frames=spec.n_frames,
-                                       save_every=spec.save_every, progress=on_frames))
+        xs = np.asarray(
+            simulate_batch(
+                x0,
+                v0,
+                radius,
+                mask,
+                spec.physics,
+                n_frames=spec.n_frames,
+                save_every=spec.save_every,
+                progress=on_frames,
+            )
+        )
         for row, i in enumerate(members):
             positions[i] = xs[row, :, : counts[i]]
 
@@ -520,8 +551,9 @@ def _simulate_groups(groups: list[list[int]], states: Sequence[InitialState], sp
         for index in range(len(groups)):
             run(index)
         return positions
-    pool = concurrent.futures.ThreadPoolExecutor(max_workers=min(lanes, len(groups)),
-                                                 thread_name_prefix="dispgns-simulate")
+    pool = concurrent.futures.ThreadPoolExecutor(
+        max_workers=min(lanes, len(groups)), thread_name_prefix="dispgns-simulate"
+    )
     futures = [pool.submit(run, index) for index in range(len(groups))]
     try:
         for future in concurrent.futures.as_completed(futures):
@@ -585,8 +617,10 @@ def generate_dataset(
         raise ValueError(f"seed must be an integer in [0, 2^32), got {seed!r}")
     seed = int(seed)
     if spec.precision == "float64" and not jax.config.jax_enable_x64:
-        raise ValueError("precision 'float64' needs jax_enable_x64: enable it before creating any array "
-                         "(jax.config.update('jax_enable_x64', True), or `with jax.enable_x64(True):`)")
+        raise ValueError(
+            "precision 'float64' needs jax_enable_x64: enable it before creating any array "
+            "(jax.config.update('jax_enable_x64', True), or `with jax.enable_x64(True):`)"
+        )
     dtype = np.float64 if spec.precision == "float64" else np.float32
     if batch_size is not None and batch_size < 1:
         raise ValueError(f"batch_size must be >= 1 or None, got {batch_size!r}")
@@ -600,9 +634,15 @@ def generate_dataset(
     with staged_directory(out_dir, overwrite=overwrite) as staging:
         labels = [f"{split} trajectory {index:05d}" for split, index, _ in items]
         keys = [trajectory_key(seed, split, index) for split, index, _ in items]
-        states = sample_initial_states(keys, [radii for _, _, radii in items], config, dim=spec.dim,
-                                       dtype=dtype, labels=labels,
-                                       progress=lambda done: report("place", done, total))
+        states = sample_initial_states(
+            keys,
+            [radii for _, _, radii in items],
+            config,
+            dim=spec.dim,
+            dtype=dtype,
+            labels=labels,
+            progress=lambda done: report("place", done, total),
+        )
         counts = [int(s.position.shape[0]) for s in states]
         groups = plan_batches(counts, spec.n_frames * spec.save_every, batch_size=batch_size)
         positions = _simulate_groups(groups, states, spec, dtype, report, LANES)
@@ -617,16 +657,24 @@ def generate_dataset(
             listed = np.asarray(radii, np.float64)
             ran = np.asarray(state.radius).astype(np.float64)
             a0 = listed[np.argmin(np.abs(ran[:, None] - listed[None, :]), axis=1)]
-            trajectories[split].append(Trajectory(
-                position=(positions[i].astype(np.float64) / half).astype(np.float32),
-                radius=(a0 / half).astype(np.float32),
-                initial_position=x0,
-                initial_velocity=v0,
-                initial_radius=a0,
-                particle_type=np.zeros((counts[i],), np.int32),
-                attrs={"seed": seed, "split": split, "index": index, "radii_m": list(radii),
-                       "start_height_m": float(state.start_height), "n_particles": counts[i]},
-            ))
+            trajectories[split].append(
+                Trajectory(
+                    position=(positions[i].astype(np.float64) / half).astype(np.float32),
+                    radius=(a0 / half).astype(np.float32),
+                    initial_position=x0,
+                    initial_velocity=v0,
+                    initial_radius=a0,
+                    particle_type=np.zeros((counts[i],), np.int32),
+                    attrs={
+                        "seed": seed,
+                        "split": split,
+                        "index": index,
+                        "radii_m": list(radii),
+                        "start_height_m": float(state.start_height),
+                        "n_particles": counts[i],
+                    },
+                )
+            )
         for split, group in trajectories.items():
             write_split(staging / split_filename(split), group, box_half_size=half)
         metadata = DatasetMetadata(

@@ -65,13 +65,15 @@ def read_authors_npz(path: str | os.PathLike, *, trust_pickle: bool = False) -> 
     if not trust_pickle:
         raise UntrustedPickleError(
             f"{path}: the authors' .npz files store object arrays that only load with pickle, and unpickling "
-            f"a file can run arbitrary code. Pass trust_pickle=True (--trust-pickle) only if you trust this file.")
+            f"a file can run arbitrary code. Pass trust_pickle=True (--trust-pickle) only if you trust this file."
+        )
     if not path.is_file():
         raise DatasetError(f"{name}: file not found at {path}")
     # np.load unpickles any non-zip file as a whole: only ever hand it a zip archive.
     if not zipfile.is_zipfile(path):
-        raise DatasetError(f"{name}: cannot be read as .npz: not a zip archive, expected the authors' .npz "
-                           f"file of trajectories")
+        raise DatasetError(
+            f"{name}: cannot be read as .npz: not a zip archive, expected the authors' .npz file of trajectories"
+        )
     try:
         archive = np.load(path, allow_pickle=True)
     except (OSError, ValueError, zipfile.BadZipFile) as error:
@@ -89,8 +91,11 @@ def read_authors_npz(path: str | os.PathLike, *, trust_pickle: bool = False) -> 
             except Exception as error:  # a corrupt member or pickle payload
                 raise DatasetError(f"{where}: cannot be loaded: {error}") from None
             if value.dtype != object or value.shape != (2,):
-                _fail(where, f"is an array of dtype {value.dtype} and shape {value.shape}, expected an object "
-                             f"array (positions (T, N, D), radii (N,)) of shape (2,)")
+                _fail(
+                    where,
+                    f"is an array of dtype {value.dtype} and shape {value.shape}, expected an object "
+                    f"array (positions (T, N, D), radii (N,)) of shape (2,)",
+                )
             try:
                 position = np.asarray(value[0], dtype=np.float64)
                 radius = np.asarray(value[1], dtype=np.float64)
@@ -104,26 +109,37 @@ def read_authors_npz(path: str | os.PathLike, *, trust_pickle: bool = False) -> 
             if n_frames is None:
                 n_frames, dim = t, d
             if (t, d) != (n_frames, dim):
-                _fail(where, f"positions have shape {position.shape}, expected ({n_frames}, N, {dim}) like "
-                             f"the file's first trajectory")
+                _fail(
+                    where,
+                    f"positions have shape {position.shape}, expected ({n_frames}, N, {dim}) like "
+                    f"the file's first trajectory",
+                )
             for label, array in (("positions", position), ("radii", radius)):
                 if not np.all(np.isfinite(array)):
                     bad = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
                     _fail(where, f"{label} have a non-finite value at index {bad}, expected finite values")
             if np.any(np.abs(position) > 1.0 + BOX_TOLERANCE):
                 frame, particle, axis = (int(i) for i in np.argwhere(np.abs(position) > 1.0 + BOX_TOLERANCE)[0])
-                _fail(where, f"position of particle {particle} at frame {frame}, axis {axis} is "
-                             f"{position[frame, particle, axis]:.6g}, expected inside the normalised box [-1, 1] "
-                             f"(are the positions divided by L?)")
+                _fail(
+                    where,
+                    f"position of particle {particle} at frame {frame}, axis {axis} is "
+                    f"{position[frame, particle, axis]:.6g}, expected inside the normalised box [-1, 1] "
+                    f"(are the positions divided by L?)",
+                )
             if not np.all((radius > 0) & (radius < 1)):
                 bad = int(np.argmax(~((radius > 0) & (radius < 1))))
                 _fail(where, f"radius of particle {bad} is {radius[bad]:.6g}, expected 0 < radius / L < 1")
-            out.append((key, Trajectory(
-                position=position.astype(np.float32),
-                radius=radius.astype(np.float32),
-                particle_type=np.zeros((n,), np.int32),
-                attrs={"source_file": name, "source_key": key},
-            )))
+            out.append(
+                (
+                    key,
+                    Trajectory(
+                        position=position.astype(np.float32),
+                        radius=radius.astype(np.float32),
+                        particle_type=np.zeros((n,), np.int32),
+                        attrs={"source_file": name, "source_key": key},
+                    ),
+                )
+            )
     return out
 
 
@@ -180,21 +196,31 @@ def import_authors_npz(
         raise FileExistsError(f"{out_dir} exists and is not a directory")
     if out_dir.is_dir() and any(out_dir.iterdir()):
         if not (out_dir / METADATA_FILE).is_file():
-            raise FileExistsError(f"{out_dir} is not empty and holds no dispgns dataset ({METADATA_FILE}); "
-                                  f"choose a new or empty directory")
+            raise FileExistsError(
+                f"{out_dir} is not empty and holds no dispgns dataset ({METADATA_FILE}); "
+                f"choose a new or empty directory"
+            )
         existing = read_metadata(out_dir)
         if existing.source != SOURCE:
-            raise FileExistsError(f"{out_dir} holds a {existing.source} dataset; imported splits can only be "
-                                  f"added to a dataset imported from the authors' files")
+            raise FileExistsError(
+                f"{out_dir} holds a {existing.source} dataset; imported splits can only be "
+                f"added to a dataset imported from the authors' files"
+            )
         if split in existing.trajectory_counts and not overwrite:
-            raise FileExistsError(f"{out_dir} already has a {split!r} split; allow replacing it (overwrite=True, "
-                                  f"--overwrite)")
-        for field, have, want in (("dim", existing.dim, dim), ("sequence_length", existing.sequence_length, n_frames),
-                                  ("box_half_size", existing.box_half_size, physics.box_half_size),
-                                  ("save_every", existing.save_every, save_every)):
+            raise FileExistsError(
+                f"{out_dir} already has a {split!r} split; allow replacing it (overwrite=True, --overwrite)"
+            )
+        for field, have, want in (
+            ("dim", existing.dim, dim),
+            ("sequence_length", existing.sequence_length, n_frames),
+            ("box_half_size", existing.box_half_size, physics.box_half_size),
+            ("save_every", existing.save_every, save_every),
+        ):
             if have != want:
-                raise DatasetError(f"{Path(path).name}: {field} is {want}, expected {have} like the "
-                                   f"dataset in {out_dir} ({METADATA_FILE})")
+                raise DatasetError(
+                    f"{Path(path).name}: {field} is {want}, expected {have} like the "
+                    f"dataset in {out_dir} ({METADATA_FILE})"
+                )
 
     counts = dict(existing.trajectory_counts) if existing else {}
     radii = {s: list(g) for s, g in existing.radii.items()} if existing else {}

@@ -2,13 +2,40 @@
 
 from dispgns.physics.config import PhysicsConfig
 from dispgns.physics.forces import external_force, interaction_force, particle_mass, particle_volume
-from dispgns.physics.initial import InitialState, PlacementError, particle_count_range, place_particles, sample_initial_state
-from dispgns.physics.integrate import SimState, euler_integrator, neighbor_fn_for, simulate, simulate_batch, update_neighbors
+from dispgns.physics.initial import (
+    InitialState,
+    PlacementError,
+    particle_count_range,
+    place_particles,
+    sample_initial_state,
+)
+from dispgns.physics.integrate import (
+    SimState,
+    euler_integrator,
+    neighbor_fn_for,
+    simulate,
+    simulate_batch,
+    update_neighbors,
+)
 from dispgns.physics.walls import WallResult, resolve_walls
 
 __all__ = [
-    "PhysicsConfig", "SimState", "InitialState", "PlacementError", "WallResult",
-    "euler_integrator", "simulate", "simulate_batch", "sample_initial_state", "place_particles",
-    "particle_count_range", "neighbor_fn_for", "update_neighbors", "interaction_force", "external_force", "particle_mass",
-    "particle_volume", "resolve_walls",
+    "PhysicsConfig",
+    "SimState",
+    "InitialState",
+    "PlacementError",
+    "WallResult",
+    "euler_integrator",
+    "simulate",
+    "simulate_batch",
+    "sample_initial_state",
+    "place_particles",
+    "particle_count_range",
+    "neighbor_fn_for",
+    "update_neighbors",
+    "interaction_force",
+    "external_force",
+    "particle_mass",
+    "particle_volume",
+    "resolve_walls",
 ]

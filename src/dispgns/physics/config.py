@@ -89,7 +89,7 @@ class PhysicsConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "PhysicsConfig":
+    def from_dict(cls, values: dict[str, Any]) -> PhysicsConfig:
         """Build a config from a mapping; unknown keys are an error."""
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - known)

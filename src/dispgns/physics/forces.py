@@ -124,8 +124,9 @@ def interaction_force(
     count = jnp.maximum(jnp.sum(mask), 1).astype(position.dtype)
     centre = jnp.sum(jnp.where(mask[:, None], position, 0.0), axis=0) / count
     others = position - centre
-    sums = jnp.dot(coeff, jnp.concatenate([others, jnp.ones((n, 1), position.dtype)], axis=1),
-                   precision=lax.Precision.HIGHEST)
+    sums = jnp.dot(
+        coeff, jnp.concatenate([others, jnp.ones((n, 1), position.dtype)], axis=1), precision=lax.Precision.HIGHEST
+    )
     return (query - centre) * sums[:, dim:] - sums[:, :dim]
 
 
@@ -193,8 +194,9 @@ def neighbor_force(
     return _sum_pair_forces(displacement, valid, a_i[:, None], neighbor[..., dim], config)
 
 
-def _pair_coefficient(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray,
-                      config: PhysicsConfig) -> jnp.ndarray:
+def _pair_coefficient(
+    displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray, config: PhysicsConfig
+) -> jnp.ndarray:
     """``-U'(r) / r`` (N/m) of every pair, 0 for pairs that do not interact.
 
     ``displacement`` is a list of ``D`` arrays of ``query - x_j`` in m;
@@ -210,8 +212,9 @@ def _pair_coefficient(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, 
     return jnp.where(valid, pair_force_over_distance(r2_safe, a_i, a_j, config), 0.0)
 
 
-def _sum_pair_forces(displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray,
-                     config: PhysicsConfig) -> jnp.ndarray:
+def _sum_pair_forces(
+    displacement: list, valid: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray, config: PhysicsConfig
+) -> jnp.ndarray:
     """Sum of pair forces over the last axis: ``(Q, D)`` in N.
 
     Arguments as in :func:`_pair_coefficient`, with ``(Q, K)`` pair arrays.

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import functools
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +35,9 @@ class PlacementError(RuntimeError):
     """The requested packing could not be placed without overlaps."""
 
 
-def particle_count_range(start_height: float, max_radius: float, config: PhysicsConfig, dim: int = 2) -> tuple[int, int]:
+def particle_count_range(
+    start_height: float, max_radius: float, config: PhysicsConfig, dim: int = 2
+) -> tuple[int, int]:
     """Inclusive range of particle counts the protocol draws from.
 
     ``N_max = (2L)^(D-1) (L - y0) / (2 a_max)^D`` squares of side ``2 a_max``
@@ -46,8 +48,10 @@ def particle_count_range(start_height: float, max_radius: float, config: Physics
     region = (2.0 * half) ** (dim - 1) * (half - start_height)
     n_scale = int(0.7 * region / (2.0 * max_radius) ** dim)
     if n_scale + 3 > _MAX_PARTICLES:
-        raise ValueError(f"largest radius {max_radius} m gives {n_scale:,} particles in the box, more than the "
-                         f"{_MAX_PARTICLES:,} particle indices can address: use larger radii")
+        raise ValueError(
+            f"largest radius {max_radius} m gives {n_scale:,} particles in the box, more than the "
+            f"{_MAX_PARTICLES:,} particle indices can address: use larger radii"
+        )
     return n_scale, n_scale + 3
 
 
@@ -55,8 +59,9 @@ def particle_count_range(start_height: float, max_radius: float, config: Physics
 _MAX_PARTICLES = 2**31 - 1
 
 
-def place_particles(key, radius, start_height, config: PhysicsConfig, *, dim: int = 2, candidates: int = 64,
-                    max_rounds: int = 64):
+def place_particles(
+    key, radius, start_height, config: PhysicsConfig, *, dim: int = 2, candidates: int = 64, max_rounds: int = 64
+):
     """Place particles one at a time, in index order, without overlap (jit-compiled).
 
     Particle ``i`` is drawn uniformly in ``[-L + a_i, L - a_i]^(D-1) x
@@ -161,8 +166,9 @@ def sample_initial_state(
     if float(start_height) + 2 * float(radii_choices.max()) > half:
         raise PlacementError(f"start_height {start_height} m leaves no room for radius {radii_choices.max()} m")
 
-    position, placed = place_particles(key_place, radius, start_height, config, dim=dim,
-                                       candidates=candidates, max_rounds=max_rounds)
+    position, placed = place_particles(
+        key_place, radius, start_height, config, dim=dim, candidates=candidates, max_rounds=max_rounds
+    )
     placed = np.asarray(placed)
     if not placed.all():
         first = int(np.argmin(placed))

@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -196,7 +196,7 @@ def _build_neighbors(position, error, config: PhysicsConfig, cell_capacity: int,
     return idx.reshape(n, max_neighbors), jnp.max(count, initial=0), error
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFns:
     """Cell-list neighbour functions for ``config.cutoff`` (cached per config).
 
@@ -217,8 +217,16 @@ def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFn
 
     def make(position, idx, error, cell_capacity, max_neighbors):
         return partition.NeighborList(
-            idx, position, error, cell_capacity, max_neighbors, partition.NeighborListFormat.Dense, cell_size,
-            None, update_fn)
+            idx,
+            position,
+            error,
+            cell_capacity,
+            max_neighbors,
+            partition.NeighborListFormat.Dense,
+            cell_size,
+            None,
+            update_fn,
+        )
 
     def update_fn(position, neighbors, **unused):
         cell_capacity, max_neighbors = neighbors.cell_list_capacity, neighbors.max_occupancy
@@ -242,8 +250,9 @@ def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFn
     return partition.NeighborListFns(allocate_fn, update_fn)
 
 
-def update_neighbors(neighbors: partition.NeighborList, position: jnp.ndarray, config: PhysicsConfig,
-                     velocity: jnp.ndarray | None = None):
+def update_neighbors(
+    neighbors: partition.NeighborList, position: jnp.ndarray, config: PhysicsConfig, velocity: jnp.ndarray | None = None
+):
     """Rebuild ``neighbors`` when the coming step could need a pair it lacks.
 
     A list built at radius ``cutoff + skin`` holds every pair the step needs
@@ -335,6 +344,7 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         x, v, a, mask = state.position, state.velocity, state.radius, state.mask
         n = x.shape[0]
         if neighbors is None:
+
             def force_at(query, query_index):
                 return interaction_force(query, query_index, x, a, mask, config)
 
@@ -354,8 +364,18 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         euler_velocity = v + config.dt * inv_mass * (state.external - drag * v + start_force)
         euler_position = x + config.dt * v
         walls = resolve_walls(
-            x, v, euler_position, euler_velocity, start_force, a, state.mass, state.external,
-            mask, config, force_at, collision_capacity,
+            x,
+            v,
+            euler_position,
+            euler_velocity,
+            start_force,
+            a,
+            state.mass,
+            state.external,
+            mask,
+            config,
+            force_at,
+            collision_capacity,
         )
         select = mask[:, None]
         return state.set(
@@ -370,8 +390,9 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
     return init_fn, step_fn
 
 
-def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames: int, save_every: int,
-                    collision_capacity, batched: bool):
+def _advance_frames(
+    state: SimState, neighbors, config: PhysicsConfig, n_frames: int, save_every: int, collision_capacity, batched: bool
+):
     """Run ``n_frames * save_every`` steps of one state or a stacked batch of states.
 
     Returns ``((state, neighbors), (xs, vs, overflow))`` with frames stacked
@@ -384,7 +405,8 @@ def _advance_frames(state: SimState, neighbors, config: PhysicsConfig, n_frames:
         squeeze = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[0], tree)
         expand = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[None], tree)
         (state, neighbors), (xs, vs, flags) = _advance_frames(
-            squeeze(state), squeeze(neighbors), config, n_frames, save_every, collision_capacity, False)
+            squeeze(state), squeeze(neighbors), config, n_frames, save_every, collision_capacity, False
+        )
         return (expand(state), expand(neighbors)), (xs[:, None], vs[:, None], flags[:, None])
     _, step_fn = euler_integrator(config, collision_capacity=collision_capacity)
     step = jax.vmap(step_fn) if batched else step_fn
@@ -419,8 +441,11 @@ def _check_collision_capacity(collision_capacity):
     # Growth doubles the capacity, so an int must start at 1 or more.
     if collision_capacity is None or isinstance(collision_capacity, str) and collision_capacity == "auto":
         return
-    if isinstance(collision_capacity, bool) or not isinstance(collision_capacity, (int, np.integer)) \
-            or collision_capacity < 1:
+    if (
+        isinstance(collision_capacity, bool)
+        or not isinstance(collision_capacity, (int, np.integer))
+        or collision_capacity < 1
+    ):
         raise ValueError(f'collision_capacity must be "auto", None or an integer >= 1, got {collision_capacity!r}')
 
 
@@ -518,8 +543,18 @@ def simulate(
         velocities = _stack_frames(v0, [vs], 0)
         return (positions, velocities) if return_velocity else positions
 
-    xs, vs = _drive(x0[None], v0[None], radius[None], mask[None], config, n_frames, save_every,
-                    collision_capacity, chunk_frames, batched=False)
+    xs, vs = _drive(
+        x0[None],
+        v0[None],
+        radius[None],
+        mask[None],
+        config,
+        n_frames,
+        save_every,
+        collision_capacity,
+        chunk_frames,
+        batched=False,
+    )
     positions, velocities = xs[0], vs[0]
     return (positions, velocities) if return_velocity else positions
 
@@ -558,19 +593,30 @@ def simulate_batch(
     x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=True)
     _check_collision_capacity(collision_capacity)
     if _is_traced(x0, v0, radius, mask):
-        raise ValueError("simulate_batch checks overflow between chunks and needs concrete arrays; "
-                         "under jit, jax.vmap(simulate) is the exact alternative")
-    xs, vs = _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacity,
-                    chunk_frames, batched=True, progress=progress)
+        raise ValueError(
+            "simulate_batch checks overflow between chunks and needs concrete arrays; "
+            "under jit, jax.vmap(simulate) is the exact alternative"
+        )
+    xs, vs = _drive(
+        x0,
+        v0,
+        radius,
+        mask,
+        config,
+        n_frames,
+        save_every,
+        collision_capacity,
+        chunk_frames,
+        batched=True,
+        progress=progress,
+    )
     return (xs, vs) if return_velocity else xs
 
 
 def _allocate_neighbors(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfig, extra_capacity: int):
     """One neighbour list per trajectory with a common capacity, stacked on axis 0."""
     neighbor_fn = neighbor_fn_for(config, position.shape[-1])
-    shifted = [
-        _park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])
-    ]
+    shifted = [_park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])]
     lists = [neighbor_fn.allocate(x, extra_capacity=extra_capacity) for x in shifted]
     capacity = lambda nbrs: (nbrs.cell_list_capacity, nbrs.max_occupancy)
     common = tuple(max(values) for values in zip(*map(capacity, lists)))
@@ -580,8 +626,9 @@ def _allocate_neighbors(position: jnp.ndarray, mask: jnp.ndarray, config: Physic
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *lists)
 
 
-def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacity, chunk_frames,
-           batched: bool, progress=None):
+def _drive(
+    x0, v0, radius, mask, config, n_frames, save_every, collision_capacity, chunk_frames, batched: bool, progress=None
+):
     """Chunked, overflow-checked run of B trajectories; returns (B, n_frames, N, D) arrays."""
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
@@ -601,7 +648,8 @@ def _drive(x0, v0, radius, mask, config, n_frames, save_every, collision_capacit
     length = max(1, min(chunk_frames, n_frames - 1))
     while done < n_frames - 1:
         (new_state, new_neighbors), (xs, vs, _) = _advance_frames_jit(
-            state, neighbors, config, length, save_every, capacity, True)
+            state, neighbors, config, length, save_every, capacity, True
+        )
         grow_collisions = bool(np.any(np.asarray(new_state.overflow)))
         grow_neighbors = _neighbor_overflow(new_neighbors)
         if grow_collisions or grow_neighbors:

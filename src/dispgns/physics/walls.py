@@ -12,7 +12,8 @@ collisions still crosses it. At most one collision per axis and step.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax.numpy as jnp
 from jax import lax
@@ -94,8 +95,22 @@ def resolve_walls(
     overflow = jnp.zeros((), bool) if exact else jnp.sum(crossed_any) > capacity
 
     def collide():
-        return _collide(position, velocity, euler_position, euler_velocity, start_force, radius, mass, external,
-                        lower_all, upper_all, crossed_any, config, force_at, None if exact else capacity)
+        return _collide(
+            position,
+            velocity,
+            euler_position,
+            euler_velocity,
+            start_force,
+            radius,
+            mass,
+            external,
+            lower_all,
+            upper_all,
+            crossed_any,
+            config,
+            force_at,
+            None if exact else capacity,
+        )
 
     # Most steps have no wall crossing at all: the cond then skips the gathers
     # and contact-point forces (under vmap it becomes a select of both).
@@ -103,8 +118,22 @@ def resolve_walls(
     return WallResult(new_position, new_velocity, wall_hits, corner_events, overflow)
 
 
-def _collide(position, velocity, euler_position, euler_velocity, start_force, radius, mass, external,
-             lower_all, upper_all, crossed_any, config: PhysicsConfig, force_at: ForceAtFn, capacity: int | None):
+def _collide(
+    position,
+    velocity,
+    euler_position,
+    euler_velocity,
+    start_force,
+    radius,
+    mass,
+    external,
+    lower_all,
+    upper_all,
+    crossed_any,
+    config: PhysicsConfig,
+    force_at: ForceAtFn,
+    capacity: int | None,
+):
     """End-of-step ``(position, velocity)``, ``(N, D)``, with every crossing particle's collision applied.
 
     Arguments as in :func:`resolve_walls`; ``lower_all``/``upper_all`` ``(N,)``
@@ -135,13 +164,20 @@ def _collide(position, velocity, euler_position, euler_velocity, start_force, ra
     crossed = [(c > upper) | (c < lower) for c in result_x]
     n_crossed = sum(c.astype(jnp.int32) for c in crossed)
     contact_time = [
-        jnp.where(crossed[d], (jnp.where(result_x[d] > upper, upper, lower) - x[d]) / jnp.where(crossed[d], v[d], 1.0), jnp.inf)
+        jnp.where(
+            crossed[d],
+            (jnp.where(result_x[d] > upper, upper, lower) - x[d]) / jnp.where(crossed[d], v[d], 1.0),
+            jnp.inf,
+        )
         for d in range(dim)
     ]
     # Rank of each axis in contact-time order; ties go to the lower axis.
     rank = [
-        sum(((contact_time[e] < contact_time[d]) | ((contact_time[e] == contact_time[d]) & (e < d))).astype(jnp.int32)
-            for e in range(dim) if e != d)
+        sum(
+            ((contact_time[e] < contact_time[d]) | ((contact_time[e] == contact_time[d]) & (e < d))).astype(jnp.int32)
+            for e in range(dim)
+            if e != d
+        )
         for d in range(dim)
     ]
 

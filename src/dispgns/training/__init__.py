@@ -14,7 +14,16 @@ from dispgns.training.step import (
 )
 
 __all__ = [
-    "random_walk_noise", "target_acceleration", "compute_normalization", "identity_normalization",
-    "TrainConfig", "TrainState", "create_train_state", "learning_rate_schedule", "loss_fn", "make_optimizer",
-    "train_step", "train_step_checked",
+    "random_walk_noise",
+    "target_acceleration",
+    "compute_normalization",
+    "identity_normalization",
+    "TrainConfig",
+    "TrainState",
+    "create_train_state",
+    "learning_rate_schedule",
+    "loss_fn",
+    "make_optimizer",
+    "train_step",
+    "train_step_checked",
 ]

@@ -32,8 +32,9 @@ import shutil
 import signal
 import tempfile
 import threading
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -140,8 +141,12 @@ class JsonlLog:
 # ----------------------------------------------------------------------------- run configuration
 
 
-def run_config(model_config: ModelConfig, train_config: TrainConfig, normalization: Mapping[str, Any],
-               dataset: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def run_config(
+    model_config: ModelConfig,
+    train_config: TrainConfig,
+    normalization: Mapping[str, Any],
+    dataset: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """The resolved configuration of a run as a JSON-ready dict (what ``config.json`` holds)."""
     from dispgns import __version__
 
@@ -161,8 +166,9 @@ def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, Tr
         train_config = TrainConfig.from_dict(values["train"])
         normalization = {k: np.asarray(v, np.float32) for k, v in values["normalization"].items()}
     except KeyError as error:
-        raise CheckpointError(f"{where}: missing field {error.args[0]!r}; expected 'model', 'train' and "
-                              f"'normalization'") from None
+        raise CheckpointError(
+            f"{where}: missing field {error.args[0]!r}; expected 'model', 'train' and 'normalization'"
+        ) from None
     except (TypeError, ValueError) as error:
         raise CheckpointError(f"{where}: {error}") from None
     return model_config, train_config, normalization
@@ -172,8 +178,13 @@ def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, Tr
 
 
 def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[str, Any]:
-    return {"params": state.params, "opt_state": state.opt_state, "step": state.step,
-            "key": jax.random.key_data(key), "data_position": np.asarray(data_position, np.int32)}
+    return {
+        "params": state.params,
+        "opt_state": state.opt_state,
+        "step": state.step,
+        "key": jax.random.key_data(key),
+        "data_position": np.asarray(data_position, np.int32),
+    }
 
 
 @contextlib.contextmanager
@@ -213,10 +224,12 @@ class Checkpointer:
         self.run_dir = Path(run_dir)
         self.config = dict(config or {})
         options = dict(create=True, enable_async_checkpointing=False)
-        self._last = ocp.CheckpointManager(self.run_dir.absolute() / CHECKPOINT_DIR,
-                                           options=ocp.CheckpointManagerOptions(max_to_keep=keep, **options))
-        self._best = ocp.CheckpointManager(self.run_dir.absolute() / BEST_DIR,
-                                           options=ocp.CheckpointManagerOptions(max_to_keep=1, **options))
+        self._last = ocp.CheckpointManager(
+            self.run_dir.absolute() / CHECKPOINT_DIR, options=ocp.CheckpointManagerOptions(max_to_keep=keep, **options)
+        )
+        self._best = ocp.CheckpointManager(
+            self.run_dir.absolute() / BEST_DIR, options=ocp.CheckpointManagerOptions(max_to_keep=1, **options)
+        )
         self.best_value = self._read_best_value()
 
     def _read_best_value(self) -> float:
@@ -230,8 +243,15 @@ class Checkpointer:
     def latest_step(self) -> int | None:
         return self._last.latest_step()
 
-    def save(self, state: TrainState, key: jax.Array, *, data_position: int, validation: Mapping[str, Any] | None
-             = None, validation_value: float | None = None) -> None:
+    def save(
+        self,
+        state: TrainState,
+        key: jax.Array,
+        *,
+        data_position: int,
+        validation: Mapping[str, Any] | None = None,
+        validation_value: float | None = None,
+    ) -> None:
         """Save ``state`` (and, if ``validation_value`` beats every earlier one, as the best too).
 
         Args:
@@ -241,8 +261,13 @@ class Checkpointer:
           validation_value: the number "best" is judged by (lower is better).
         """
         step = int(state.step)
-        extra = {"config": self.config, "step": step, "data_position": int(data_position),
-                 "validation": dict(validation or {}), "validation_value": validation_value}
+        extra = {
+            "config": self.config,
+            "step": step,
+            "data_position": int(data_position),
+            "validation": dict(validation or {}),
+            "validation_value": validation_value,
+        }
         tree = _state_tree(state, key, data_position)
         args = ocp.args.Composite(state=ocp.args.StandardSave(tree), extra=ocp.args.JsonSave(extra))
         with _interrupts_held():
@@ -255,8 +280,9 @@ class Checkpointer:
                     self._best.wait_until_finished()
                 self.best_value = float(validation_value)
 
-    def restore(self, template: TrainState, key: jax.Array, *, step: int | None = None, best: bool = False
-                ) -> tuple[TrainState, jax.Array, dict[str, Any]]:
+    def restore(
+        self, template: TrainState, key: jax.Array, *, step: int | None = None, best: bool = False
+    ) -> tuple[TrainState, jax.Array, dict[str, Any]]:
         """Restore into the structure of ``template`` (e.g. a fresh :func:`create_train_state`).
 
         Returns:
@@ -269,14 +295,18 @@ class Checkpointer:
             raise CheckpointError(f"{manager.directory}: no checkpoint to restore")
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, _state_tree(template, key, 0))
         try:
-            restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
-                                                                     extra=ocp.args.JsonRestore()))
+            restored = manager.restore(
+                step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), extra=ocp.args.JsonRestore())
+            )
         except (ValueError, KeyError, TypeError) as error:
-            raise CheckpointError(f"{manager.directory}/{step}: does not match the run's configuration "
-                                  f"({error})") from None
+            raise CheckpointError(
+                f"{manager.directory}/{step}: does not match the run's configuration ({error})"
+            ) from None
         except Exception as error:  # tensorstore raises bare Exceptions for damaged array files
-            raise CheckpointError(f"{manager.directory}/{step}: cannot be read, the checkpoint is damaged "
-                                  f"({type(error).__name__}: {str(error).splitlines()[0][:300]})") from None
+            raise CheckpointError(
+                f"{manager.directory}/{step}: cannot be read, the checkpoint is damaged "
+                f"({type(error).__name__}: {str(error).splitlines()[0][:300]})"
+            ) from None
         tree, extra = restored["state"], restored["extra"]
         state = template.replace(params=tree["params"], opt_state=tree["opt_state"], step=tree["step"])
         return state, jax.random.wrap_key_data(tree["key"]), dict(extra)
@@ -289,8 +319,9 @@ class Checkpointer:
 # ----------------------------------------------------------------------------- exported models
 
 
-def export_model(directory: str | os.PathLike, params, model_config: ModelConfig,
-                 record: Mapping[str, Any] | None = None) -> Path:
+def export_model(
+    directory: str | os.PathLike, params, model_config: ModelConfig, record: Mapping[str, Any] | None = None
+) -> Path:
     """Write a model directory (``params.msgpack`` + ``model.json``), replacing it atomically.
 
     Args:
@@ -308,8 +339,12 @@ def export_model(directory: str | os.PathLike, params, model_config: ModelConfig
         os.chmod(staging, 0o755)
         host = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), jax.device_get(params))
         (staging / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(host)))
-        info = {"format_version": MODEL_FORMAT_VERSION, "dispgns_version": __version__,
-                "model": model_config.to_dict(), "record": dict(record or {})}
+        info = {
+            "format_version": MODEL_FORMAT_VERSION,
+            "dispgns_version": __version__,
+            "model": model_config.to_dict(),
+            "record": dict(record or {}),
+        }
         (staging / MODEL_FILE).write_text(json.dumps(info, indent=2, default=_json_default) + "\n")
         if directory.exists():
             old = directory.parent / f".{directory.name}.old-{os.getpid()}"
@@ -339,8 +374,9 @@ def load_model(directory: str | os.PathLike) -> tuple[dict, ModelConfig, dict[st
     info = read_json(directory / MODEL_FILE, "model description of an exported dispgns model")
     where = str(directory / MODEL_FILE)
     if info.get("format_version") != MODEL_FORMAT_VERSION:
-        raise CheckpointError(f"{where}: 'format_version' is {info.get('format_version')!r}, expected "
-                              f"{MODEL_FORMAT_VERSION}")
+        raise CheckpointError(
+            f"{where}: 'format_version' is {info.get('format_version')!r}, expected {MODEL_FORMAT_VERSION}"
+        )
     try:
         model_config = ModelConfig.from_dict(info["model"])
     except KeyError:
@@ -363,13 +399,15 @@ def _match_template(template, raw, where: str, path: str = ""):
     """``raw`` (nested dicts of arrays) checked against ``template``'s structure and shapes."""
     if isinstance(template, Mapping):
         if not isinstance(raw, Mapping):
-            raise CheckpointError(f"{where}: '{path or '/'}' is not a mapping, expected one with keys "
-                                  f"{sorted(template)}")
+            raise CheckpointError(
+                f"{where}: '{path or '/'}' is not a mapping, expected one with keys {sorted(template)}"
+            )
         missing = sorted(set(template) - set(raw))
         extra = sorted(set(raw) - set(template))
         if missing or extra:
-            raise CheckpointError(f"{where}: '{path or '/'}' has keys missing {missing} / unexpected {extra} "
-                                  f"for the stored model config")
+            raise CheckpointError(
+                f"{where}: '{path or '/'}' has keys missing {missing} / unexpected {extra} for the stored model config"
+            )
         return {k: _match_template(template[k], raw[k], where, f"{path}/{k}") for k in template}
     array = np.asarray(raw)
     if array.shape != tuple(template.shape):
@@ -377,8 +415,9 @@ def _match_template(template, raw, where: str, path: str = ""):
     return jnp.asarray(array, template.dtype)
 
 
-def restore_template(model_config: ModelConfig, train_config: TrainConfig,
-                     normalization: Mapping[str, Any]) -> TrainState:
+def restore_template(
+    model_config: ModelConfig, train_config: TrainConfig, normalization: Mapping[str, Any]
+) -> TrainState:
     """A fresh state of the right structure to restore a checkpoint into."""
     return create_train_state(jax.random.key(0), model_config, train_config, normalization)
 
@@ -400,8 +439,7 @@ def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[dict, M
         params, model_config, info = load_model(path)
         return params, model_config, {**info, "source": str(path)}
     if not (path / CONFIG_FILE).is_file():
-        raise CheckpointError(f"{path}: neither an exported model ({MODEL_FILE}) nor a training run "
-                              f"({CONFIG_FILE})")
+        raise CheckpointError(f"{path}: neither an exported model ({MODEL_FILE}) nor a training run ({CONFIG_FILE})")
     if not best and (path / MODEL_DIR / MODEL_FILE).is_file():
         params, model_config, info = load_model(path / MODEL_DIR)
         return params, model_config, {**info, "source": str(path / MODEL_DIR)}
@@ -409,11 +447,22 @@ def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[dict, M
     model_config, train_config, normalization = configs_from(values, str(path / CONFIG_FILE))
     checkpointer = Checkpointer(path, config=values)
     try:
-        state, _, extra = checkpointer.restore(restore_template(model_config, train_config, normalization),
-                                               jax.random.key(0), best=best)
+        state, _, extra = checkpointer.restore(
+            restore_template(model_config, train_config, normalization), jax.random.key(0), best=best
+        )
     finally:
         checkpointer.close()
     where = path / (BEST_DIR if best else CHECKPOINT_DIR) / str(int(state.step))
-    return state.params, model_config, {"model": model_config.to_dict(), "source": str(where),
-                                        "record": {"steps": int(state.step), "train": train_config.to_dict(),
-                                                   "validation": extra.get("validation", {})}}
+    return (
+        state.params,
+        model_config,
+        {
+            "model": model_config.to_dict(),
+            "source": str(where),
+            "record": {
+                "steps": int(state.step),
+                "train": train_config.to_dict(),
+                "validation": extra.get("validation", {}),
+            },
+        },
+    )

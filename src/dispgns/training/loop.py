@@ -17,7 +17,8 @@ import dataclasses
 import functools
 import math
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -56,9 +57,14 @@ class Validator:
         self.clean_config = dataclasses.replace(train_config, noise_std=0.0, pushforward_steps=0)
         self.batch = None
         if train_config.validation_examples > 0:
-            stream = BatchStream(trajectories, input_sequence_length=c, batch_size=1,
-                                 connectivity_radius=model_config.connectivity_radius, shuffle=False,
-                                 bounds=model_config.bounds)
+            stream = BatchStream(
+                trajectories,
+                input_sequence_length=c,
+                batch_size=1,
+                connectivity_radius=model_config.connectivity_radius,
+                shuffle=False,
+                bounds=model_config.bounds,
+            )
             count = min(train_config.validation_examples, stream.num_examples)
             ids = np.unique(np.linspace(0, stream.num_examples - 1, count).round().astype(np.int64))
             self.batch = stream.make_batch(ids)
@@ -73,16 +79,21 @@ class Validator:
             for traj in chosen:
                 n = traj.position.shape[1]
                 x = np.zeros((c + self.frames, budget, model_config.dim), np.float32)
-                x[:, :n] = traj.position[:c + self.frames]
+                x[:, :n] = traj.position[: c + self.frames]
                 radius = np.ones((budget,), np.float32)
                 radius[:n] = traj.radius
                 mask = np.arange(budget) < n
                 self.rollouts.append((x, radius, mask))
-            fits = [graph_lib.capacity_for(x, m, connectivity_radius=model_config.connectivity_radius,
-                                           bounds=model_config.bounds, margin=0.25) for x, _, m in self.rollouts]
+            fits = [
+                graph_lib.capacity_for(
+                    x, m, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds, margin=0.25
+                )
+                for x, _, m in self.rollouts
+            ]
             cells = [f.cell for f in fits if f.cell is not None]
-            self.capacity = graph_lib.GraphCapacity(edges=max(f.edges for f in fits),
-                                                    cell=max(cells) if cells else None)
+            self.capacity = graph_lib.GraphCapacity(
+                edges=max(f.edges for f in fits), cell=max(cells) if cells else None
+            )
 
     def __call__(self, params) -> dict[str, float]:
         out: dict[str, float] = {}
@@ -92,10 +103,18 @@ class Validator:
             c = self.model_config.input_sequence_length
             errors = []
             for x, radius, mask in self.rollouts:
-                predicted = rollout(params, x[:c], radius, self.frames, model_config=self.model_config, mask=mask,
-                                    capacity=self.capacity)
-                errors.append(float(jnp.mean(per_frame_mse(jnp.concatenate([x[:c], predicted]), x,
-                                                           input_frames=c, mask=mask))))
+                predicted = rollout(
+                    params,
+                    x[:c],
+                    radius,
+                    self.frames,
+                    model_config=self.model_config,
+                    mask=mask,
+                    capacity=self.capacity,
+                )
+                errors.append(
+                    float(jnp.mean(per_frame_mse(jnp.concatenate([x[:c], predicted]), x, input_frames=c, mask=mask)))
+                )
             out["valid_rollout_mse"] = float(np.mean(errors))
             out["valid_rollout_frames"] = self.frames
         return out
@@ -103,8 +122,7 @@ class Validator:
 
 @functools.partial(network_jit, static_argnums=(2, 3))
 def _clean_loss(params, batch, model_config, train_config):
-    return loss_fn(params["network"], params["normalization"], batch, jax.random.key(0), model_config,
-                   train_config)[0]
+    return loss_fn(params["network"], params["normalization"], batch, jax.random.key(0), model_config, train_config)[0]
 
 
 @dataclasses.dataclass
@@ -116,10 +134,17 @@ class LoopResult:
     last_validation: dict[str, Any]
 
 
-def train(state: TrainState, stream: BatchStream, key: jax.Array, *, until_step: int | None = None,
-          validator: Callable[[Any], Mapping[str, Any]] | None = None, checkpointer=None,
-          on_step: Callable[[int, Mapping[str, float]], None] | None = None,
-          on_log: Callable[[Mapping[str, Any]], None] | None = None) -> LoopResult:
+def train(
+    state: TrainState,
+    stream: BatchStream,
+    key: jax.Array,
+    *,
+    until_step: int | None = None,
+    validator: Callable[[Any], Mapping[str, Any]] | None = None,
+    checkpointer=None,
+    on_step: Callable[[int, Mapping[str, float]], None] | None = None,
+    on_log: Callable[[Mapping[str, Any]], None] | None = None,
+) -> LoopResult:
     """Train from ``state.step`` up to ``until_step`` (default ``train_config.num_steps``).
 
     Every ``log_every`` steps ``on_log`` gets ``{"kind": "train", "step",
@@ -161,8 +186,7 @@ def train(state: TrainState, stream: BatchStream, key: jax.Array, *, until_step:
         if validator is None or validated_at == step:
             return
         metrics = dict(validator(state.params))
-        last_validation = {"kind": "validation", "step": step, **metrics,
-                           "elapsed_s": time.perf_counter() - start_time}
+        last_validation = {"kind": "validation", "step": step, **metrics, "elapsed_s": time.perf_counter() - start_time}
         validated_at = step
         log(last_validation)
 
@@ -173,8 +197,7 @@ def train(state: TrainState, stream: BatchStream, key: jax.Array, *, until_step:
         value = None
         if validated_at == step:
             value = last_validation.get("valid_rollout_mse", last_validation.get("valid_one_step_loss"))
-        checkpointer.save(state, key, data_position=stream.position, validation=last_validation,
-                          validation_value=value)
+        checkpointer.save(state, key, data_position=stream.position, validation=last_validation, validation_value=value)
         checkpointed_at = step
 
     interrupted = False
@@ -191,10 +214,17 @@ def train(state: TrainState, stream: BatchStream, key: jax.Array, *, until_step:
                 on_step(step, {"loss": loss, "learning_rate": float(metrics["learning_rate"])})
             if step % tc.log_every == 0 or step == until:
                 now = time.perf_counter()
-                log({"kind": "train", "step": step, "loss": float(np.mean(losses)),
-                     "grad_norm": float(np.mean(norms)), "learning_rate": float(metrics["learning_rate"]),
-                     "steps_per_s": (step - window_step) / max(now - window_start, 1e-9),
-                     "elapsed_s": now - start_time})
+                log(
+                    {
+                        "kind": "train",
+                        "step": step,
+                        "loss": float(np.mean(losses)),
+                        "grad_norm": float(np.mean(norms)),
+                        "learning_rate": float(metrics["learning_rate"]),
+                        "steps_per_s": (step - window_step) / max(now - window_start, 1e-9),
+                        "elapsed_s": now - start_time,
+                    }
+                )
                 losses, norms = [], []
                 window_start, window_step = now, step
             if tc.validate_every and step % tc.validate_every == 0:

@@ -11,7 +11,7 @@ and are never trained.
 
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -48,8 +48,9 @@ def compute_normalization(trajectories: Iterable, *, noise_std: float = 0.0) -> 
         x = np.asarray(traj.position, np.float64)
         a = np.asarray(traj.radius, np.float64)
         if x.ndim != 3 or a.shape != (x.shape[1],) or x.shape[0] < 3:
-            raise ValueError(f"trajectory {k}: expected position (T >= 3, N, D) and radius (N,), "
-                             f"got {x.shape} and {a.shape}")
+            raise ValueError(
+                f"trajectory {k}: expected position (T >= 3, N, D) and radius (N,), got {x.shape} and {a.shape}"
+            )
         if dim is None:
             dim = x.shape[2]
         elif x.shape[2] != dim:
@@ -59,18 +60,18 @@ def compute_normalization(trajectories: Iterable, *, noise_std: float = 0.0) -> 
         for name, values in (("v", v), ("a", acc)):
             flat = values.reshape(-1, dim)
             sums[name] = sums.get(name, 0.0) + flat.sum(axis=0)
-            sums[name + "2"] = sums.get(name + "2", 0.0) + (flat ** 2).sum(axis=0)
+            sums[name + "2"] = sums.get(name + "2", 0.0) + (flat**2).sum(axis=0)
         count_v += v.shape[0] * v.shape[1]
         count_a += acc.shape[0] * acc.shape[1]
-        inv_a2_sum += float(np.sum(1.0 / a ** 2)) * x.shape[0]
+        inv_a2_sum += float(np.sum(1.0 / a**2)) * x.shape[0]
         inv_a2_count += a.size * x.shape[0]
     if dim is None:
         raise ValueError("compute_normalization needs at least one trajectory")
-    noise = noise_std ** 2 * inv_a2_sum / inv_a2_count
+    noise = noise_std**2 * inv_a2_sum / inv_a2_count
     out = {}
     for name, key, count in (("v", "velocity", count_v), ("a", "acceleration", count_a)):
         mean = sums[name] / count
-        var = np.maximum(sums[name + "2"] / count - mean ** 2, 0.0)
+        var = np.maximum(sums[name + "2"] / count - mean**2, 0.0)
         out[f"{key}_mean"] = mean.astype(np.float32)
         out[f"{key}_std"] = np.sqrt(var + noise).astype(np.float32)
     for key in ("velocity_std", "acceleration_std"):

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -97,8 +98,13 @@ class TrainConfig:
         for name in ("batch_size", "num_steps", "log_every", "keep_checkpoints"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
-        for name in ("validate_every", "checkpoint_every", "validation_examples", "validation_trajectories",
-                     "validation_rollout_frames"):
+        for name in (
+            "validate_every",
+            "checkpoint_every",
+            "validation_examples",
+            "validation_trajectories",
+            "validation_rollout_frames",
+        ):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
                 raise ValueError(f"TrainConfig.{name} must be an integer >= 0, got {getattr(self, name)!r}")
         if int(self.pushforward_steps) != self.pushforward_steps or self.pushforward_steps < 0:
@@ -107,14 +113,15 @@ class TrainConfig:
             if not (getattr(self, name) > 0):
                 raise ValueError(f"TrainConfig.{name} must be > 0, got {getattr(self, name)!r}")
         if not (0 <= self.min_learning_rate <= self.learning_rate):
-            raise ValueError(f"TrainConfig.min_learning_rate must lie in [0, learning_rate], "
-                             f"got {self.min_learning_rate!r}")
+            raise ValueError(
+                f"TrainConfig.min_learning_rate must lie in [0, learning_rate], got {self.min_learning_rate!r}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> "TrainConfig":
+    def from_dict(cls, values: Mapping[str, Any]) -> TrainConfig:
         """Build a config from a mapping (numbers may be given as text); unknown keys are an error."""
         return config_from_mapping(cls, values)
 
@@ -130,7 +137,7 @@ def learning_rate_schedule(train_config: TrainConfig):
     return schedule
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def make_optimizer(train_config: TrainConfig) -> optax.GradientTransformation:
     """Adam with :func:`learning_rate_schedule` (cached per config, so jit caches stay warm)."""
     return optax.adam(learning_rate_schedule(train_config))
@@ -157,8 +164,9 @@ class TrainState:
     train_config: TrainConfig = struct.field(pytree_node=False)
 
 
-def create_train_state(key: jax.Array, model_config: ModelConfig, train_config: TrainConfig,
-                       normalization: Mapping[str, Any] | None = None) -> TrainState:
+def create_train_state(
+    key: jax.Array, model_config: ModelConfig, train_config: TrainConfig, normalization: Mapping[str, Any] | None = None
+) -> TrainState:
     """Fresh parameters and optimiser state.
 
     Args:
@@ -169,14 +177,21 @@ def create_train_state(key: jax.Array, model_config: ModelConfig, train_config: 
     """
     if train_config.standardize:
         if normalization is None:
-            raise ValueError("TrainConfig.standardize is on: pass normalization=compute_normalization(train "
-                             "trajectories, noise_std=train_config.noise_std), or set standardize=False")
+            raise ValueError(
+                "TrainConfig.standardize is on: pass normalization=compute_normalization(train "
+                "trajectories, noise_std=train_config.noise_std), or set standardize=False"
+            )
     else:
         normalization = identity_normalization(model_config.dim)
     params = init_params(key, model_config, normalization)
     opt_state = make_optimizer(train_config).init(params["network"])
-    return TrainState(params=params, opt_state=opt_state, step=jnp.zeros((), jnp.int32),
-                      model_config=model_config, train_config=train_config)
+    return TrainState(
+        params=params,
+        opt_state=opt_state,
+        step=jnp.zeros((), jnp.int32),
+        model_config=model_config,
+        train_config=train_config,
+    )
 
 
 def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_config: TrainConfig):
@@ -191,13 +206,16 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
     keys = jax.random.split(key, position.shape[0])
     inputs = position[:, :c]
     windows = inputs + jax.vmap(lambda key, x, m: random_walk_noise(key, x, train_config.noise_std, m))(
-        keys, inputs, mask)
+        keys, inputs, mask
+    )
     overflow = jnp.zeros((), bool)
     if k:
+
         def advance(carry, _):
             windows, overflow = carry
-            _, nxt, step_overflow = one_step_batch(params, windows, radius, mask, batch.capacity, model_config,
-                                                   edge_budget=batch.edge_budget)
+            _, nxt, step_overflow = one_step_batch(
+                params, windows, radius, mask, batch.capacity, model_config, edge_budget=batch.edge_budget
+            )
             windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
             return (windows, overflow | jnp.any(step_overflow)), None
 
@@ -216,8 +234,7 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
     return x, a, graphs, target, overflow
 
 
-def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: ModelConfig,
-            train_config: TrainConfig):
+def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: ModelConfig, train_config: TrainConfig):
     """Mean over the real particles of the batch of the squared error summed over D.
 
     The ``B`` examples are evaluated as one disjoint graph
@@ -258,11 +275,14 @@ def train_step(state: TrainState, batch: Batch, key: jax.Array):
     mc, tc = state.model_config, state.train_config
     window = batch.position.shape[1]
     if window != mc.input_sequence_length + 1 + tc.pushforward_steps:
-        raise ValueError(f"batch windows have {window} frames, expected C + 1 + pushforward_steps = "
-                         f"{mc.input_sequence_length + 1 + tc.pushforward_steps}")
+        raise ValueError(
+            f"batch windows have {window} frames, expected C + 1 + pushforward_steps = "
+            f"{mc.input_sequence_length + 1 + tc.pushforward_steps}"
+        )
     normalization = state.params["normalization"]
     (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-        state.params["network"], normalization, batch, key, mc, tc)
+        state.params["network"], normalization, batch, key, mc, tc
+    )
     tx = make_optimizer(tc)
     updates, opt_state = tx.update(grads, state.opt_state, state.params["network"])
     network = optax.apply_updates(state.params["network"], updates)
@@ -302,9 +322,13 @@ def train_step_checked(state: TrainState, batch: Batch, key: jax.Array, grow=Non
         if grow is None:
             cap = batch.capacity
             budget = batch.edge_budget
-            batch = batch.with_capacity(GraphCapacity(edges=round_capacity(int(cap.edges * 1.25), margin=0.0),
-                                                      cell=None if cap.cell is None else cap.cell + 2),
-                                        None if budget is None else round_capacity(int(budget * 1.25), margin=0.0))
+            batch = batch.with_capacity(
+                GraphCapacity(
+                    edges=round_capacity(int(cap.edges * 1.25), margin=0.0),
+                    cell=None if cap.cell is None else cap.cell + 2,
+                ),
+                None if budget is None else round_capacity(int(budget * 1.25), margin=0.0),
+            )
         else:
             batch = grow(batch)
     raise RuntimeError(f"graph capacity still overflows after {max_retries} increases (now {batch.capacity})")
