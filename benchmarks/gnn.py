@@ -53,7 +53,7 @@ import numpy as np
 from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 
 import dispgns
-from dispgns.data.examples import BatchStream
+from dispgns.training.batches import BatchStream
 from dispgns.graph import capacity_for, host_count_pairs
 from dispgns.model import MLP, ModelConfig, count_parameters
 from dispgns.physics import PhysicsConfig, sample_initial_state, simulate

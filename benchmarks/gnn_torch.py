@@ -41,7 +41,7 @@ import torch
 from gnn import machine_info, trajectories
 from torch import nn
 
-from dispgns.data.examples import BatchStream
+from dispgns.training.batches import BatchStream
 from dispgns.graph import capacity_for
 from dispgns.model import ModelConfig
 from dispgns.simulator import _rollout_chunk

@@ -6,7 +6,7 @@ import pytest
 
 from dispgns.data import load_dataset
 from dispgns.evaluation import chaos_floor_trajectories, evaluate_trajectories, predict_trajectories
-from dispgns.metrics import chaos_floor_rollout
+from dispgns.evaluation import chaos_floor_rollout
 from dispgns.model import init_params
 from dispgns.simulator import rollout
 

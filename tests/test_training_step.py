@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dispgns.data.examples import BatchStream, example_index
+from dispgns.training.batches import BatchStream, example_index
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig
 from dispgns.training import (

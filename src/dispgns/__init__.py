@@ -1,8 +1,18 @@
 """dispgns: learned simulation of finite-size particle suspensions with graph networks.
 
-The public names below load their modules on first use: ``import dispgns``
-(and ``dispgns --help``) stays fast, while jax-md, whose import takes
-seconds, is imported with the first name that needs it.
+``import dispgns`` changes nothing outside dispgns (no allocator, XLA flag
+or environment change); speed tuning is opt-in, in :mod:`dispgns.tuning`.
+The public names below load their modules on first use, so the import stays
+fast (jax-md, whose import takes seconds, comes with the first name that
+needs it).
+
+Pure functions (``jit``, ``vmap``, ``grad``, ``lax.scan``; capacities
+static, overflow a returned flag): :func:`euler_integrator`,
+:func:`simulate_scan`, :func:`predict_step`, :func:`rollout_scan`,
+:func:`train_step`. Host conveniences (concrete arrays; capacities sized
+from the data and grown after an overflow): :func:`simulate`,
+:func:`simulate_batch`, :func:`predict_acceleration`,
+:func:`predict_position`, :func:`rollout`, :func:`rollout_batch`.
 """
 
 from __future__ import annotations
@@ -12,62 +22,107 @@ from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
-# First, before anything starts JAX's CPU backend: see dispgns.runtime.
-from dispgns.runtime import network_compiler_options, physics_compiler_options, tune_host_allocator
-from dispgns.runtime import tune_at_import as _tune_at_import
-
-_tune_at_import()
-
-# Public name -> the module that defines it.
+# Public name -> the module that defines it (a module name maps to itself).
 _EXPORTS = {
-    # Ground truth: the physics, datasets and metrics.
+    # Ground truth: the physics.
     "PhysicsConfig": "dispgns.physics",
     "SimState": "dispgns.physics",
     "euler_integrator": "dispgns.physics",
     "sample_initial_state": "dispgns.physics",
     "simulate": "dispgns.physics",
     "simulate_batch": "dispgns.physics",
-    "rollout_metrics": "dispgns.metrics",
-    "summarize": "dispgns.metrics",
-    "constant_velocity_rollout": "dispgns.metrics",
-    "chaos_floor_rollout": "dispgns.metrics",
+    "simulate_scan": "dispgns.physics",
+    # Datasets.
     "Trajectory": "dispgns.data",
     "DatasetMetadata": "dispgns.data",
     "DatasetError": "dispgns.data",
     "load_dataset": "dispgns.data",
     "generate_dataset": "dispgns.data",
-    # Learned simulator core: graph network, one-step prediction, rollout, training step.
+    # Learned simulator: graph capacity, network, one-step prediction, rollout.
     "GraphCapacity": "dispgns.graph",
     "ModelConfig": "dispgns.model",
     "init_params": "dispgns.model",
+    "fit_capacity": "dispgns.simulator",
+    "predict_step": "dispgns.simulator",
     "predict_acceleration": "dispgns.simulator",
     "predict_position": "dispgns.simulator",
     "rollout": "dispgns.simulator",
     "rollout_batch": "dispgns.simulator",
+    "rollout_scan": "dispgns.simulator",
+    # Training.
+    "Batch": "dispgns.training",
+    "BatchStream": "dispgns.training",
     "TrainConfig": "dispgns.training",
     "TrainState": "dispgns.training",
     "compute_normalization": "dispgns.training",
     "create_train_state": "dispgns.training",
     "make_optimizer": "dispgns.training",
     "train_step": "dispgns.training",
-    "Batch": "dispgns.data.examples",
-    "BatchStream": "dispgns.data.examples",
-    # Evaluation, checkpoints and the shipped model.
-    "evaluate_trajectories": "dispgns.evaluation",
-    "load_pretrained": "dispgns.pretrained",
     "export_model": "dispgns.training.checkpoint",
     "load_model": "dispgns.training.checkpoint",
     "load_params": "dispgns.training.checkpoint",
+    # Metrics, evaluation and the shipped model.
+    "rollout_metrics": "dispgns.metrics",
+    "summarize": "dispgns.metrics",
+    "constant_velocity_rollout": "dispgns.metrics",
+    "chaos_floor_rollout": "dispgns.evaluation",
+    "evaluate_trajectories": "dispgns.evaluation",
+    "load_pretrained": "dispgns.pretrained",
+    # Opt-in speed settings.
+    "tuning": "dispgns.tuning",
 }
 
-__all__ = ["__version__", "tune_host_allocator", "physics_compiler_options", "network_compiler_options", *_EXPORTS]
+__all__ = [
+    "Batch",
+    "BatchStream",
+    "DatasetError",
+    "DatasetMetadata",
+    "GraphCapacity",
+    "ModelConfig",
+    "PhysicsConfig",
+    "SimState",
+    "TrainConfig",
+    "TrainState",
+    "Trajectory",
+    "__version__",
+    "chaos_floor_rollout",
+    "compute_normalization",
+    "constant_velocity_rollout",
+    "create_train_state",
+    "euler_integrator",
+    "evaluate_trajectories",
+    "export_model",
+    "fit_capacity",
+    "generate_dataset",
+    "init_params",
+    "load_dataset",
+    "load_model",
+    "load_params",
+    "load_pretrained",
+    "make_optimizer",
+    "predict_acceleration",
+    "predict_position",
+    "predict_step",
+    "rollout",
+    "rollout_batch",
+    "rollout_metrics",
+    "rollout_scan",
+    "sample_initial_state",
+    "simulate",
+    "simulate_batch",
+    "simulate_scan",
+    "summarize",
+    "train_step",
+    "tuning",
+]
 
 
 def __getattr__(name: str):
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'dispgns' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
+    loaded = importlib.import_module(module)
+    value = loaded if module == f"{__name__}.{name}" else getattr(loaded, name)
     globals()[name] = value  # later look-ups skip this function
     return value
 
@@ -77,11 +132,11 @@ def __dir__():
 
 
 if TYPE_CHECKING:  # what static tools and IDEs see
+    from dispgns import tuning
     from dispgns.data import DatasetError, DatasetMetadata, Trajectory, generate_dataset, load_dataset
-    from dispgns.data.examples import Batch, BatchStream
-    from dispgns.evaluation import evaluate_trajectories
+    from dispgns.evaluation import chaos_floor_rollout, evaluate_trajectories
     from dispgns.graph import GraphCapacity
-    from dispgns.metrics import chaos_floor_rollout, constant_velocity_rollout, rollout_metrics, summarize
+    from dispgns.metrics import constant_velocity_rollout, rollout_metrics, summarize
     from dispgns.model import ModelConfig, init_params
     from dispgns.physics import (
         PhysicsConfig,
@@ -90,10 +145,21 @@ if TYPE_CHECKING:  # what static tools and IDEs see
         sample_initial_state,
         simulate,
         simulate_batch,
+        simulate_scan,
     )
     from dispgns.pretrained import load_pretrained
-    from dispgns.simulator import predict_acceleration, predict_position, rollout, rollout_batch
+    from dispgns.simulator import (
+        fit_capacity,
+        predict_acceleration,
+        predict_position,
+        predict_step,
+        rollout,
+        rollout_batch,
+        rollout_scan,
+    )
     from dispgns.training import (
+        Batch,
+        BatchStream,
         TrainConfig,
         TrainState,
         compute_normalization,

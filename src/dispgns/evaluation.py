@@ -9,7 +9,9 @@ with :func:`dispgns.metrics.rollout_metrics` next to two references:
 * the constant-velocity baseline (always);
 * the chaos floor (where the trajectories carry their exact initial state):
   the ground-truth physics re-run from that state with every centre
-  perturbed by ``1e-6 L``, in the precision the dataset was generated in.
+  perturbed by ``1e-6 L``, in the precision the dataset was generated in
+  (:func:`chaos_floor_rollout` for one trajectory, :func:`chaos_floor_trajectories`
+  for a split).
 
 Units: normalised box units for positions and MSEs, as everywhere in the
 learned simulator; ``rollout_metrics`` adds millimetres and diameters.
@@ -18,33 +20,128 @@ learned simulator; ``rollout_metrics`` adds millimetres and diameters.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dispgns.metrics import perturb_positions, rollout_metrics, summarize
+from dispgns.arrays import node_budget, stack_padded
+from dispgns.metrics import rollout_metrics, summarize
 from dispgns.model import ModelConfig
-from dispgns.physics import PhysicsConfig, simulate_batch
+from dispgns.physics import PhysicsConfig, simulate, simulate_batch
 from dispgns.simulator import rollout_batch
+
+__all__ = [
+    "CHAOS_PERTURBATION",
+    "chaos_floor_rollout",
+    "chaos_floor_trajectories",
+    "evaluate_trajectories",
+    "perturb_positions",
+    "predict_trajectories",
+]
 
 CHAOS_PERTURBATION = 1e-6
 """Initial-position perturbation of the chaos floor, in units of ``L``."""
 
 
-def _padded(trajectories: Sequence[Any], frames: int, budget: int, dim: int):
-    count = len(trajectories)
-    position = np.zeros((count, frames, budget, dim), np.float32)
-    radius = np.ones((count, budget), np.float32)
-    mask = np.zeros((count, budget), bool)
-    for k, traj in enumerate(trajectories):
-        n = traj.position.shape[1]
-        position[k, :, :n] = traj.position[:frames]
-        radius[k, :n] = traj.radius
-        mask[k, :n] = True
-    return position, radius, mask
+def chaos_floor_rollout(
+    initial_position,
+    initial_velocity,
+    radius,
+    config: PhysicsConfig,
+    *,
+    key,
+    n_frames: int,
+    save_every: int = 15,
+    perturbation: float = 1e-6,
+    mask=None,
+    x64: bool = True,
+    **simulate_kwargs,
+) -> np.ndarray:
+    """Re-run the ground truth from a slightly perturbed initial state.
+
+    The suspension is chaotic: two exact simulations whose initial positions
+    differ by ``1e-6 L`` separate over the trajectory. The error of the
+    perturbed run against the stored truth (computed with the same metrics
+    as a model) is a floor that even a perfect model could not beat.
+
+    Every coordinate of every real particle is shifted by an independent
+    normal draw of standard deviation ``perturbation * L``, then kept inside
+    the wall contact positions ``[-L + a_i, L - a_i]`` (a no-op unless a
+    particle starts within the perturbation of a wall). With
+    ``perturbation = 0`` the result is exactly ``simulate(...) / L``.
+
+    Args:
+      initial_position: ``(N, D)`` stored exact initial centres in m (SI,
+        float64, as stored in the dataset, not the normalised frames).
+      initial_velocity: ``(N, D)`` in m/s. radius: ``(N,)`` in m.
+      config: the :class:`PhysicsConfig` the truth was generated with.
+      key: a ``jax.random`` key (or an int seed).
+      n_frames: frames to return (frame 0 is the perturbed initial state).
+      save_every: Euler steps between frames (15 in the paper).
+      perturbation: standard deviation of the shift, in units of ``L``.
+      mask: optional ``(N,)`` bool for padded particles.
+      x64: run in float64 (inside ``jax.enable_x64(True)``), as the data
+        generator does; ``False`` runs in the session's precision.
+      **simulate_kwargs: passed to :func:`dispgns.physics.simulate`
+        (e.g. ``collision_capacity``, ``chunk_frames``).
+
+    Returns:
+      ``(n_frames, N, D)`` numpy array of positions divided by ``L`` (float64
+      with ``x64``), directly comparable with the stored normalised truth.
+    """
+    if isinstance(key, (int, np.integer)):
+        key = jax.random.PRNGKey(int(key))
+    half = config.box_half_size
+    with jax.enable_x64(x64):
+        dtype = jnp.float64 if x64 else jnp.float32
+        x0 = jnp.asarray(np.asarray(initial_position), dtype)
+        v0 = jnp.asarray(np.asarray(initial_velocity), dtype)
+        a = jnp.asarray(np.asarray(radius), dtype)
+        if x0.ndim != 2 or v0.shape != x0.shape or a.shape != x0.shape[:1]:
+            raise ValueError(
+                f"expected initial_position (N, D), initial_velocity (N, D) and radius (N,), got "
+                f"{x0.shape}, {v0.shape} and {a.shape}"
+            )
+        shifted = perturb_positions(key, x0, a, config, perturbation=perturbation, mask=mask)
+        frames = simulate(
+            shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask, **simulate_kwargs
+        )
+        return np.asarray(frames) / half
+
+
+def perturb_positions(
+    key, initial_position, radius, config: PhysicsConfig, *, perturbation: float = 1e-6, mask=None
+) -> jnp.ndarray:
+    """Initial centres shifted by independent normal draws of std ``perturbation * L`` (the chaos floor's start).
+
+    Shifted centres are kept inside the wall contact positions ``[-L + a_i,
+    L - a_i]`` (only where the noise pushed them across), so an unperturbed
+    or padding particle keeps its exact position.
+
+    Args:
+      key: a ``jax.random`` key.
+      initial_position: ``(N, D)`` centres in m. radius: ``(N,)`` in m.
+      perturbation: std in units of ``L`` (finite, >= 0).
+      mask: optional ``(N,)`` bool; padding particles are not moved.
+
+    Returns:
+      ``(N, D)`` shifted centres in m, in the dtype of ``initial_position``.
+    """
+    if perturbation < 0 or not math.isfinite(perturbation):
+        raise ValueError(f"perturbation must be a finite number >= 0 (units of L), got {perturbation!r}")
+    x0 = jnp.asarray(initial_position)
+    a = jnp.asarray(radius, x0.dtype)
+    half = config.box_half_size
+    noise = jax.random.normal(key, x0.shape, x0.dtype) * (perturbation * half)
+    if mask is not None:
+        noise = jnp.where(jnp.asarray(mask, bool)[:, None], noise, 0.0)
+    shifted = x0 + noise
+    lower, upper = (-half + a)[:, None], (half - a)[:, None]
+    shifted = jnp.where((shifted > upper) & (x0 <= upper), upper, shifted)
+    return jnp.where((shifted < lower) & (x0 >= lower), lower, shifted)
 
 
 def predict_trajectories(
@@ -55,6 +152,7 @@ def predict_trajectories(
     n_frames: int | None = None,
     batch_size: int = 6,
     progress: Callable[[int], None] | None = None,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> list[np.ndarray]:
     """Full rollouts of ``trajectories`` from their first ``C`` frames.
 
@@ -67,6 +165,8 @@ def predict_trajectories(
       batch_size: trajectories rolled out together (the last group is padded
         with repeats so every group compiles to the same program).
       progress: ``progress(steps)`` with the number of model steps just done.
+      compiler_options: XLA options for the rollouts (e.g.
+        :func:`dispgns.tuning.network_compiler_options`).
 
     Returns:
       One ``(n_frames, N, D)`` float32 array per trajectory: frames ``0 ..
@@ -79,23 +179,30 @@ def predict_trajectories(
     frames = min(t.position.shape[0] for t in trajectories) if n_frames is None else int(n_frames)
     if frames <= c or any(t.position.shape[0] < frames for t in trajectories):
         raise ValueError(f"every trajectory needs more than C = {c} frames and at least n_frames = {frames}")
-    budget = int(8 * math.ceil(max(t.position.shape[1] for t in trajectories) / 8))
+    budget = node_budget([t.position.shape[1] for t in trajectories])
     batch_size = max(1, min(batch_size, len(trajectories)))
     out = []
     for start in range(0, len(trajectories), batch_size):
         group = trajectories[start : start + batch_size]
         filled = group + [group[-1]] * (batch_size - len(group))
-        position, radius, mask = _padded(filled, c, budget, model_config.dim)
-        last = [0]
+        position, radius, mask = stack_padded(filled, frames=c, budget=budget)
+        last, members = [0], len(group)
 
-        def step_progress(done, last=last):
+        def step_progress(done, last=last, members=members):
             if progress is not None:
-                progress(len(group) * (done - last[0]))
+                progress(members * (done - last[0]))
             last[0] = done
 
         predicted = np.asarray(
             rollout_batch(
-                params, position, radius, frames - c, model_config=model_config, mask=mask, progress=step_progress
+                params,
+                position,
+                radius,
+                frames - c,
+                model_config=model_config,
+                mask=mask,
+                progress=step_progress,
+                compiler_options=compiler_options,
             )
         )
         for k, traj in enumerate(group):
@@ -113,6 +220,7 @@ def chaos_floor_trajectories(
     seed: int = 0,
     perturbation: float = CHAOS_PERTURBATION,
     x64: bool = False,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> list[np.ndarray]:
     """The ground truth re-run from each trajectory's perturbed initial state, in one batched simulation.
 
@@ -125,6 +233,8 @@ def chaos_floor_trajectories(
       seed: trajectory ``k`` is perturbed with ``fold_in(PRNGKey(seed), k)``.
       perturbation: std of the shift in units of ``L``.
       x64: simulate in float64 (use the dataset's generation precision).
+      compiler_options: XLA options for the physics (e.g.
+        :func:`dispgns.tuning.physics_compiler_options`).
 
     Returns:
       One ``(n_frames, N, D)`` array per trajectory, normalised by ``L``.
@@ -164,6 +274,7 @@ def chaos_floor_trajectories(
             physics_config,
             n_frames=n_frames,
             save_every=save_every,
+            compiler_options=compiler_options,
         )
         frames = np.asarray(frames)
     return [frames[k, :, : t.initial_position.shape[0]] / half for k, t in enumerate(trajectories)]
@@ -183,6 +294,8 @@ def evaluate_trajectories(
     n_frames: int | None = None,
     batch_size: int = 6,
     progress: Callable[[str, int], None] | None = None,
+    compiler_options: Mapping[str, Any] | None = None,
+    physics_compiler_options: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Roll out and score every trajectory of a split.
 
@@ -200,6 +313,8 @@ def evaluate_trajectories(
       batch_size: trajectories rolled out together.
       progress: ``progress(stage, amount)``; stage ``"rollout"`` (model
         steps) or ``"chaos"`` (trajectories).
+      compiler_options, physics_compiler_options: XLA options for the
+        rollouts and the chaos floor's physics (:mod:`dispgns.tuning`).
 
     Returns:
       ``{"predictions": [(T, N, D), ...], "metrics": [rollout_metrics dict,
@@ -216,12 +331,18 @@ def evaluate_trajectories(
         n_frames=frames,
         batch_size=batch_size,
         progress=lambda steps: report("rollout", steps),
+        compiler_options=compiler_options,
     )
     with_chaos = chaos_floor and all(getattr(t, "initial_position", None) is not None for t in trajectories)
     chaos = [None] * len(trajectories)
     if with_chaos:
         chaos = chaos_floor_trajectories(
-            trajectories, physics_config, n_frames=frames, save_every=save_every, x64=chaos_x64
+            trajectories,
+            physics_config,
+            n_frames=frames,
+            save_every=save_every,
+            x64=chaos_x64,
+            compiler_options=physics_compiler_options,
         )
         report("chaos", len(trajectories))
     metrics = []

@@ -26,6 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from dispgns import graph as graph_lib
+from dispgns.arrays import host_array
+from dispgns.capacity import Attempt, drive
+
+__all__ = ["edge_feature_size", "edge_features", "graph_features", "node_feature_size", "node_features", "velocities"]
 
 
 def node_feature_size(input_sequence_length: int, dim: int) -> int:
@@ -115,8 +119,9 @@ def graph_features(
 ):
     """Node features, edge features and edges of one configuration, padding removed.
 
-    A convenience for inspection and tests; it needs concrete arrays (the
-    number of edges is data-dependent). Edges are every ordered pair within
+    A host convenience for inspection and tests; it needs concrete arrays
+    (the number of edges is data-dependent; the graph capacity is fitted and
+    grown until nothing is dropped). Edges are every ordered pair within
     ``connectivity_radius`` at the last frame, self-loops included, sorted by
     (receiver, sender).
 
@@ -128,25 +133,29 @@ def graph_features(
       ``(node_features (N, (C-1)D + 2D + 1), edge_features (E, CD + 2),
       senders (E,), receivers (E,))`` in the dtype of ``position_seq``.
     """
-    position_seq = jnp.asarray(position_seq)
-    if not jnp.issubdtype(position_seq.dtype, jnp.floating):
-        position_seq = position_seq.astype(jnp.float32)
-    radius = jnp.asarray(radius, position_seq.dtype)
+    position_seq = host_array(position_seq, "position_seq", pure="node_features and edge_features")
+    if not np.issubdtype(position_seq.dtype, np.floating):
+        position_seq = position_seq.astype(np.float32)
+    radius = host_array(radius, "radius").astype(position_seq.dtype)
     if position_seq.ndim != 3 or radius.shape != position_seq.shape[1:2]:
         raise ValueError(
             f"expected position_seq (C, N, D) and radius (N,), got {position_seq.shape} and {radius.shape}"
         )
     n = position_seq.shape[1]
     bounds = graph_lib.as_bounds(bounds, position_seq.shape[2])
-    # On the capacity ladder: calls on other frames mostly reuse the compiled graph builder.
-    capacity = graph_lib.on_ladder(
-        graph_lib.capacity_for(position_seq[-1], connectivity_radius=connectivity_radius, bounds=bounds), n
+    last = position_seq[-1]
+    build = lambda capacity: _graph_jit(last, connectivity_radius, capacity, bounds)
+
+    def attempt(_, capacity, __):
+        graph = build(capacity)
+        return Attempt(None, None, 0, True) if bool(graph.overflow) else Attempt(None, graph, 1, False)
+
+    grow = lambda capacity, _: graph_lib.grow_capacity(
+        capacity, n, last, connectivity_radius=connectivity_radius, bounds=bounds
     )
-    g = _graph_jit(position_seq[-1], connectivity_radius, capacity, bounds)
-    while bool(g.overflow):
-        capacity = graph_lib.on_ladder(graph_lib.grow_capacity(capacity, n), n)
-        g = _graph_jit(position_seq[-1], connectivity_radius, capacity, bounds)
-    senders, receivers = np.asarray(g.senders), np.asarray(g.receivers)
+    capacity = graph_lib.fit_capacity(last, connectivity_radius=connectivity_radius, bounds=bounds)
+    _, (graph,), _ = drive(attempt, None, capacity, grow)
+    senders, receivers = np.asarray(graph.senders), np.asarray(graph.receivers)
     keep = receivers < n
     senders, receivers = senders[keep], receivers[keep]
     order = np.lexsort((senders, receivers))

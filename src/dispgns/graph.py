@@ -1,4 +1,4 @@
-"""Radius graphs on jax-md neighbour lists, with fixed capacities and overflow detection.
+"""Radius graphs on jax-md neighbour lists, with fixed capacities, and the graph capacity policy.
 
 The learned simulator connects every ordered pair of particles closer than the
 connectivity radius at the last input frame, **self-loops included**. Graphs
@@ -10,13 +10,16 @@ live in arrays of static size so that they can be built inside ``jit``,
 * the edges come sorted by receiver, unused slots at the end hold index ``N``
   (out of range: they gather nothing real and scatter nowhere);
 * a graph that needs more slots than it has sets ``overflow`` instead of
-  dropping edges; the caller grows the capacity outside ``jit``
-  (:func:`grow_capacity`) and recomputes, or poisons its result with NaN when
-  it is traced and cannot grow; :func:`on_ladder` rounds a capacity up to a
-  fixed geometric ladder, so that capacities sized from different data
-  repeat (one compilation each).
+  dropping edges (:func:`radius_graph` is pure; growing is the caller's job).
 
-Positions are in normalised box units (the box is ``bounds``, by default
+The capacity policy lives here and nowhere else: :func:`fit_capacity` sizes a
+capacity from data, :func:`grow_capacity` grows one after an overflow, both
+on the ladder of :mod:`dispgns.capacity` (so that capacities sized from
+different data repeat and reuse compiled programs); :func:`edge_budget_for`
+and :func:`grow_edge_budget` do the same for batches merged into one graph
+(:func:`merge_graphs`).
+
+Positions are in normalised units (the box is ``bounds``, by default
 ``[-1, 1]^D``). Padding particles (``mask == False``) are parked on a lattice
 far outside the box, farther than the radius from everything, so they never
 create an edge to a real particle or to each other (only their own self-loop).
@@ -43,16 +46,41 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax_md import partition, space
+from scipy.spatial import cKDTree
+
+from dispgns.arrays import host_array
+from dispgns.capacity import coarse_ladder, ladder
+from dispgns.tuning import thresholds
+
+__all__ = [
+    "DEFAULT_BOUNDS",
+    "Bounds",
+    "Graph",
+    "GraphCapacity",
+    "as_bounds",
+    "bounds_array",
+    "capacity_for_counts",
+    "cell_list_possible",
+    "count_pairs",
+    "edge_budget_for",
+    "fit_capacity",
+    "full_capacity",
+    "grow_capacity",
+    "grow_edge_budget",
+    "host_count_pairs",
+    "host_max_cell_occupancy",
+    "merge_graphs",
+    "merged_edge_count",
+    "on_ladder",
+    "park_padding",
+    "parking_lattice",
+    "radius_graph",
+    "uses_cell_list",
+]
 
 Bounds = tuple[tuple[float, float], ...]
 
 DEFAULT_BOUNDS: Bounds = ((-1.0, 1.0), (-1.0, 1.0))
-
-# From this many particle slots on, capacity_for picks the cell list. Measured
-# on 2 CPU cores with the settled packings of the data: all pairs 0.19 ms vs
-# cells 0.27 ms at N = 60, 0.40 vs 0.44 ms at 120, 1.6 vs 0.7 ms at 220,
-# 28 vs 7 ms at 1000 (jax-md's all-pairs pruning scans N^2 candidates).
-CELL_LIST_MIN_PARTICLES = 160
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,10 +307,10 @@ def radius_graph(
 
 
 def count_pairs(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, connectivity_radius: float) -> jnp.ndarray:
-    """Number of ordered pairs ``s != r`` of real particles closer than the radius.
+    """Number of ordered pairs ``s != r`` of real particles closer than the radius (pure, all pairs).
 
-    All-pairs, jittable. ``position``: ``(..., N, D)``; returns int32 of shape
-    ``position.shape[:-2]``.
+    ``position``: ``(..., N, D)``; returns int32 of shape ``position.shape[:-2]``.
+    Builds ``N x N`` distances: for small graphs and tests (:func:`host_count_pairs` scales).
     """
     x = jax.lax.stop_gradient(position)
     d2 = sum((x[..., :, None, d] - x[..., None, :, d]) ** 2 for d in range(x.shape[-1]))
@@ -295,51 +323,67 @@ def count_pairs(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, conne
     return jnp.sum(close, axis=(-2, -1), dtype=jnp.int32)
 
 
-def _host_array(x, name: str) -> np.ndarray:
-    if isinstance(x, jax.core.Tracer):
-        raise ValueError(f"{name} must be concrete to size a graph (got a traced array); pass a capacity instead")
-    return np.asarray(x)
+def _frames_and_masks(position, mask) -> tuple[np.ndarray, np.ndarray]:
+    """Concrete ``(..., N, D)`` positions and a mask broadcastable to ``(..., N)`` as ``(F, N, D)``, ``(F, N)``."""
+    x = host_array(position, "position")
+    if x.ndim < 2:
+        raise ValueError(f"position must have shape (..., N, D), got {x.shape}")
+    keep = np.ones(x.shape[:-1], bool) if mask is None else host_array(mask, "mask").astype(bool)
+    try:
+        keep = np.broadcast_to(keep, x.shape[:-1])
+    except ValueError:
+        raise ValueError(f"mask of shape {keep.shape} does not fit positions of shape {x.shape}") from None
+    return x.reshape((-1,) + x.shape[-2:]), keep.reshape((-1, x.shape[-2]))
 
 
 def host_count_pairs(position, mask=None, *, connectivity_radius: float) -> np.ndarray:
-    """Host (numpy) count of ordered pairs ``s != r`` of real particles closer than the radius.
+    """Host count of ordered pairs ``s != r`` of real particles closer than the radius, per frame.
 
-    ``position``: concrete ``(..., N, D)``; returns int64 counts of shape
+    ``position``: concrete ``(..., N, D)``; ``mask``: broadcastable to
+    ``position.shape[:-1]``. Returns int64 counts of shape
     ``position.shape[:-2]``. Counting is done in float64 and so may differ
-    from the float32 graph on pairs within rounding of the radius.
+    from the float32 graph on pairs within rounding of the radius, which the
+    capacities' head-room covers. Small frames are counted in blocks of
+    ``N x N`` distances, large ones with a k-d tree (``O(N log N)``).
     """
-    x = _host_array(position, "position").astype(np.float64)
-    lead, (n, dim) = x.shape[:-2], x.shape[-2:]
-    x = x.reshape((-1, n, dim))
-    keep = np.ones((n,), bool) if mask is None else _host_array(mask, "mask").astype(bool)
-    x = x[:, keep]
-    counts = np.empty((x.shape[0],), np.int64)
+    x = host_array(position, "position")
+    frames, keep = _frames_and_masks(x, mask)
+    frames = frames.astype(np.float64)
+    n, dim = frames.shape[1:]
     r2 = float(connectivity_radius) ** 2
-    m = x.shape[1]
-    step = max(1, 4_000_000 // max(1, m * m))
-    for start in range(0, x.shape[0], step):
-        block = x[start : start + step]
-        d2 = np.zeros(block.shape[:1] + (m, m))
-        for d in range(dim):
-            d2 += (block[:, :, None, d] - block[:, None, :, d]) ** 2
-        counts[start : start + step] = np.count_nonzero(d2 < r2, axis=(1, 2)) - m
-    return counts.reshape(lead)
+    counts = np.empty((frames.shape[0],), np.int64)
+    if n <= _DENSE_COUNT_MAX_PARTICLES:
+        step = max(1, 4_000_000 // max(1, n * n))
+        for start in range(0, frames.shape[0], step):
+            block, real = frames[start : start + step], keep[start : start + step]
+            d2 = sum((block[:, :, None, d] - block[:, None, :, d]) ** 2 for d in range(dim))
+            close = (d2 < r2) & real[:, :, None] & real[:, None, :]
+            counts[start : start + step] = np.count_nonzero(close, axis=(1, 2)) - real.sum(axis=1)
+    else:
+        # count_neighbors counts distances <= r: the largest float64 below r gives "< r".
+        below = float(np.nextafter(float(connectivity_radius), 0.0))
+        for f, (points, real) in enumerate(zip(frames, keep)):
+            tree = cKDTree(points[real])
+            counts[f] = int(tree.count_neighbors(tree, below)) - int(real.sum())
+    return counts.reshape(x.shape[:-2])
+
+
+# Up to this many particles host_count_pairs builds N x N distances (fast in
+# numpy blocks, and memory-bounded); above, a k-d tree per frame.
+_DENSE_COUNT_MAX_PARTICLES = 1024
 
 
 def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> int:
-    """Most particles in one cell of the cell list (padding parked as in :func:`radius_graph`).
+    """Most particles in one cell of the cell list over all frames (padding parked as in :func:`radius_graph`).
 
-    ``position``: concrete ``(N, D)`` or ``(T, N, D)`` (maximum over frames).
+    ``position``: concrete ``(..., N, D)``; ``mask``: broadcastable to ``position.shape[:-1]``.
     """
-    x = _host_array(position, "position")
-    frames = x if x.ndim == 3 else x[None]
+    frames, keep = _frames_and_masks(position, mask)
     n, dim = frames.shape[1:]
     bounds = as_bounds(bounds, dim)
     origin, extent, _, _ = _grid(connectivity_radius, bounds)
-    if mask is not None:
-        parked = parking_lattice(n, dim, connectivity_radius=connectivity_radius, bounds=bounds)
-        keep = _host_array(mask, "mask").astype(bool)
-        frames = np.where(keep[None, :, None], frames, parked[None])
+    parked = parking_lattice(n, dim, connectivity_radius=connectivity_radius, bounds=bounds)
+    frames = np.where(keep[..., None], frames, parked[None])
     # jax-md's hashing, in its float32 arithmetic.
     box = np.float32(extent)
     cells = np.floor(box / np.float32(connectivity_radius)).astype(np.int64)
@@ -352,86 +396,174 @@ def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float, 
     return int(max(np.bincount(f, minlength=1).max() for f in flat))
 
 
-def round_capacity(count: int, *, margin: float = 0.05, minimum_extra: int = 32, quantum: int = 64) -> int:
-    """A capacity for ``count`` items: ``count * (1 + margin) + minimum_extra``, rounded up to ``quantum``."""
-    need = math.ceil(count * (1.0 + margin)) + minimum_extra
-    return int(quantum * math.ceil(need / quantum))
+# ----------------------------------------------------------------------------- the capacity policy
+# Every graph capacity dispgns sizes from data or grows after an overflow is
+# decided by the three functions below, on the ladder of dispgns.capacity.
 
 
-def capacity_for(
-    position: jnp.ndarray,
-    mask: jnp.ndarray | None = None,
+def capacity_for_counts(
+    pairs: int, n: int, *, occupancy: int | None = None, margin: float = 0.05, extra: int = 32
+) -> GraphCapacity:
+    """The capacity, on the ladder, for a graph of ``pairs`` ordered pairs among ``n`` particle slots.
+
+    Edges: ``pairs * (1 + margin) + extra`` rounded up to the ladder (multiples
+    of 64, rungs ~19 % apart), at most all ``n (n - 1)`` pairs. Cells (when the
+    fullest cell holds ``occupancy`` particles; ``None``: no cell list):
+    ``occupancy * (1 + 4 margin) + 1``, at least 4, on the coarse ladder, at
+    most ``n``.
+    """
+    edges = min(ladder(math.ceil(int(pairs) * (1.0 + margin)) + int(extra), quantum=64), n * (n - 1))
+    cell = None
+    if occupancy is not None:
+        cell = min(coarse_ladder(max(4, math.ceil(int(occupancy) * (1.0 + 4 * margin)) + 1)), max(n, 1))
+    return GraphCapacity(edges=edges, cell=cell)
+
+
+def uses_cell_list(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> bool:
+    """The default candidate search: a cell list from ``tuning.thresholds().cell_list_min_particles`` slots on.
+
+    Both searches give the same graph; the cell list is faster for many particles.
+    """
+    return n >= thresholds().cell_list_min_particles and cell_list_possible(
+        dim, connectivity_radius=connectivity_radius, bounds=bounds
+    )
+
+
+def fit_capacity(
+    position,
+    mask=None,
     *,
     connectivity_radius: float,
     bounds: Bounds = DEFAULT_BOUNDS,
-    use_cell_list: bool | None = None,
     margin: float = 0.05,
+    use_cell_list: bool | None = None,
 ) -> GraphCapacity:
-    """A :class:`GraphCapacity` that fits the graph of ``position`` with some margin (eager).
+    """The capacity, on the ladder, that fits the graph of every frame of ``position`` with head-room (host).
 
     Args:
-      position: ``(N, D)`` or ``(T, N, D)`` positions (the capacity fits every frame).
-      mask: ``(N,)`` bool or ``None``.
-      use_cell_list: ``None`` picks the cell list when ``N >=
-        CELL_LIST_MIN_PARTICLES`` and jax-md can build one
-        (:func:`cell_list_possible`).
-      margin: relative head-room on top of the counted pairs.
+      position: concrete ``(..., N, D)`` positions (normalised units): one
+        frame, a trajectory, a batch of trajectories...
+      mask: ``None`` or bool broadcastable to ``position.shape[:-1]``.
+      margin: relative head-room over the most pairs found (``0.5`` for a
+        graph that must last a rollout under ``jit``, where it cannot grow).
+      use_cell_list: ``None``: :func:`uses_cell_list`.
+
+    Returns:
+      :func:`capacity_for_counts` of the largest frame.
     """
-    x = _host_array(position, "position")
-    frames = x if x.ndim == 3 else x[None]
-    n = frames.shape[1]
-    pairs = int(np.max(host_count_pairs(frames, mask, connectivity_radius=connectivity_radius)))
+    frames, keep = _frames_and_masks(position, mask)
+    n, dim = frames.shape[1:]
+    pairs = int(np.max(host_count_pairs(frames, keep, connectivity_radius=connectivity_radius)))
     if use_cell_list is None:
-        use_cell_list = n >= CELL_LIST_MIN_PARTICLES and cell_list_possible(
-            frames.shape[-1], connectivity_radius=connectivity_radius, bounds=bounds
-        )
-    cell = None
+        use_cell_list = uses_cell_list(n, dim, connectivity_radius=connectivity_radius, bounds=bounds)
+    occupancy = None
     if use_cell_list:
-        occupancy = host_max_cell_occupancy(frames, mask, connectivity_radius=connectivity_radius, bounds=bounds)
-        cell = max(4, math.ceil(occupancy * (1.0 + 4 * margin)) + 1)
-    return GraphCapacity(edges=min(round_capacity(pairs, margin=margin), n * (n - 1)), cell=cell)
+        occupancy = host_max_cell_occupancy(frames, keep, connectivity_radius=connectivity_radius, bounds=bounds)
+    return capacity_for_counts(pairs, n, occupancy=occupancy, margin=margin)
 
 
-def _rung(need: int) -> int:
-    """The smallest ``ceil(2^(k/4))``, ``k = 0, 1, ...``, that is ``>= need`` (rungs at most ~19 % apart)."""
-    k = max(0, 4 * (max(int(need), 1).bit_length() - 1))
-    while math.ceil(2.0 ** (k / 4)) < need:
-        k += 1
-    return math.ceil(2.0 ** (k / 4))
+def grow_capacity(
+    capacity: GraphCapacity,
+    n: int,
+    position=None,
+    mask=None,
+    *,
+    connectivity_radius: float | None = None,
+    bounds: Bounds = DEFAULT_BOUNDS,
+) -> GraphCapacity:
+    """A capacity on the ladder larger than ``capacity`` (after an overflow), for ``n`` particle slots.
 
-
-def _coarse_rung(need: int) -> int:
-    """The smallest ``2^k`` or ``3 x 2^(k-1)`` that is ``>= need``."""
-    power = 1 << max(int(need) - 1, 0).bit_length()
-    return power * 3 // 4 if power >= 4 and power * 3 // 4 >= need else power
-
-
-def on_ladder(capacity: GraphCapacity, n: int | None = None, *, quantum: int = 64) -> GraphCapacity:
-    """``capacity`` rounded up to the next rung of a fixed geometric ladder (edges and cells).
-
-    A capacity sized from data differs by a few pairs from one trajectory or
-    call to the next, and every new one is a new compilation. Rounded up to
-    rungs about 19 % apart (edges in multiples of ``quantum``) the capacities
-    repeat, so later rollouts and steps reuse the programs compiled for
-    earlier ones. Capped at all pairs (edges) and at ``n`` (cells) when the
-    particle count ``n`` is given; never below ``capacity``.
+    At least 1.25 x ``capacity`` (edges and cells), and when the positions
+    where it overflowed are given (concrete ``(..., N, D)``; mask
+    broadcastable to ``(..., N)``), enough for their graphs with 20 %
+    head-room. Capped at all pairs and at ``n`` per cell: the result equals
+    ``capacity`` only when nothing can grow.
     """
-    edges = max(quantum * _rung(math.ceil(capacity.edges / quantum)), capacity.edges)
-    # Cells on a coarser ladder (2^k and 1.5 x 2^k): a cell's head-room is cheap, and the fullest cell of a
-    # settling bed varies more between trajectories than the pair count does.
-    cell = None if capacity.cell is None else _coarse_rung(capacity.cell)
+    edges = max(math.ceil(capacity.edges * 1.25), capacity.edges + 1)
+    cell = None if capacity.cell is None else max(math.ceil(capacity.cell * 1.25), capacity.cell + 2)
+    if position is not None:
+        if connectivity_radius is None:
+            raise ValueError("grow_capacity needs connectivity_radius to fit positions")
+        fit = fit_capacity(
+            position,
+            mask,
+            connectivity_radius=connectivity_radius,
+            bounds=bounds,
+            margin=0.2,
+            use_cell_list=capacity.cell is not None,
+        )
+        edges, cell = max(edges, fit.edges), None if cell is None else max(cell, fit.cell)
+    return on_ladder(GraphCapacity(edges=edges, cell=cell), n)
+
+
+def full_capacity(n: int) -> GraphCapacity:
+    """Room for every ordered pair of ``n`` particles on the all-pairs path: it can never overflow."""
+    return GraphCapacity(edges=n * (n - 1))
+
+
+def on_ladder(capacity: GraphCapacity, n: int | None = None) -> GraphCapacity:
+    """``capacity`` rounded up to the ladder of :mod:`dispgns.capacity` (edges and cells), never below it.
+
+    Edges go to multiples of 64 on rungs ~19 % apart, cells to ``2^k`` or
+    ``1.5 x 2^k`` (a cell's head-room is cheap, and the fullest cell of a
+    settling bed varies more than the pair count). Capped at all pairs and
+    at ``n`` per cell when the particle count ``n`` is given.
+    """
+    edges = max(ladder(capacity.edges, quantum=64), capacity.edges)
+    cell = None if capacity.cell is None else coarse_ladder(capacity.cell)
     if n is not None:
         edges = max(min(edges, n * (n - 1)), capacity.edges)
         cell = None if cell is None else max(min(cell, n), capacity.cell)
     return GraphCapacity(edges=edges, cell=cell)
 
 
-def grow_capacity(capacity: GraphCapacity, n: int | None = None, factor: float = 1.5) -> GraphCapacity:
-    """A larger capacity after an overflow (edges and cells grown by ``factor``; capped at all pairs)."""
-    edges = round_capacity(int(capacity.edges * factor), margin=0.0)
-    if n is not None:
-        edges = min(edges, n * (n - 1))
-    cell = None if capacity.cell is None else max(capacity.cell + 2, math.ceil(capacity.cell * factor))
-    if n is not None and cell is not None:
-        cell = min(cell, n)
-    return GraphCapacity(edges=edges, cell=cell)
+def edge_budget_for(need: int) -> int:
+    """Edge slots, on the ladder, for a merged graph that needs ``need`` (see :func:`merge_graphs`)."""
+    return ladder(need, quantum=64)
+
+
+def grow_edge_budget(budget: int) -> int:
+    """The next edge budget after a merged graph overflowed ``budget`` (at least 1.25 x, on the ladder)."""
+    return ladder(max(math.ceil(budget * 1.25), budget + 1), quantum=64)
+
+
+# ----------------------------------------------------------------------------- merged graphs
+
+
+def merged_edge_count(graphs: Graph, n: int) -> jnp.ndarray:
+    """Number of real edges (self-loops included) of ``B`` graphs ``(B, E)`` over ``n`` node slots: ``()`` int32."""
+    return jnp.sum(graphs.receivers < n, dtype=jnp.int32)
+
+
+def merge_graphs(graphs: Graph, n: int, edge_budget: int | None = None) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """``B`` graphs as one disjoint graph over ``B (n + 1)`` nodes (one dummy node per example).
+
+    Example ``b``'s node ``i`` becomes node ``b (n + 1) + i``; unused edge
+    slots point at the example's dummy node ``b (n + 1) + n``. With an
+    ``edge_budget`` the real edges are moved to the front of a list of that
+    static length (in order, so receivers stay sorted) and the rest of it
+    points at the last dummy node: the per-edge work then scales with the
+    edges the batch has, not with ``B`` times the largest example's capacity.
+
+    Args:
+      graphs: :class:`Graph` with ``(B, E)`` arrays.
+      n: node slots per example.
+      edge_budget: static total edge slots, or ``None`` (``B E`` slots, no
+        compaction).
+
+    Returns:
+      ``(senders, receivers)``, each ``(B E,)`` or ``(edge_budget,)`` int32.
+      Edges beyond ``edge_budget`` are dropped: the caller checks
+      :func:`merged_edge_count` ``<= edge_budget`` and reports an overflow.
+    """
+    b, e = graphs.senders.shape
+    offset = (jnp.arange(b, dtype=jnp.int32) * (n + 1))[:, None]
+    senders = (jnp.minimum(graphs.senders, n) + offset).reshape(b * e)
+    receivers = (jnp.minimum(graphs.receivers, n) + offset).reshape(b * e)
+    if edge_budget is None:
+        return senders, receivers
+    real = (graphs.receivers < n).reshape(b * e)
+    slot = jnp.where(real, jnp.cumsum(real, dtype=jnp.int32) - 1, edge_budget)
+    dummy = jnp.full((edge_budget,), b * (n + 1) - 1, jnp.int32)
+    compact = lambda values: dummy.at[slot].set(values, mode="drop", indices_are_sorted=True)
+    return compact(senders), compact(receivers)

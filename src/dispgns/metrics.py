@@ -18,8 +18,9 @@ The array functions (:func:`per_frame_mse`, :func:`wall_violations`,
 :func:`constant_velocity_rollout`, ...) are pure ``jax.numpy`` and work under
 ``jax.jit`` / ``jax.vmap`` with the integer arguments static. The host-level
 functions :func:`horizon_mse`, :func:`rollout_metrics` and :func:`summarize`
-return plain Python floats and lists (JSON-ready), and :func:`chaos_floor_rollout`
-runs the ground-truth physics.
+return plain Python floats and lists (JSON-ready). Nothing here runs a
+simulation: the chaos-floor trajectory is computed by
+:func:`dispgns.evaluation.chaos_floor_rollout` and passed in.
 
 The paper (Hashemi & Izadkhah 2025) reports its rollout MSE in
 normalised units and converts an MSE of 6.6e-4 into "0.066 mm", which
@@ -40,7 +41,26 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from dispgns.physics import PhysicsConfig, particle_mass, simulate
+from dispgns.arrays import pad_particles
+from dispgns.physics import PhysicsConfig, particle_mass
+
+__all__ = [
+    "DEFAULT_HORIZONS",
+    "constant_velocity_rollout",
+    "horizon_mse",
+    "kinetic_energy",
+    "mean_height",
+    "mse_times_L_mm",
+    "overlap_counts",
+    "per_frame_mse",
+    "rmse_diameters",
+    "rmse_mm",
+    "rollout_metrics",
+    "rollout_mse",
+    "squared_error_per_frame",
+    "summarize",
+    "wall_violations",
+]
 
 DEFAULT_HORIZONS: tuple[int, ...] = (1, 10, 50, 100)
 """Horizons (in predicted frames) reported by :func:`rollout_metrics`."""
@@ -370,104 +390,6 @@ def constant_velocity_rollout(positions, *, input_frames: int = 6, n_frames: int
     return jnp.concatenate([positions[:input_frames], future], axis=0)
 
 
-def chaos_floor_rollout(
-    initial_position,
-    initial_velocity,
-    radius,
-    config: PhysicsConfig,
-    *,
-    key,
-    n_frames: int,
-    save_every: int = 15,
-    perturbation: float = 1e-6,
-    mask=None,
-    x64: bool = True,
-    **simulate_kwargs,
-) -> np.ndarray:
-    """Re-run the ground truth from a slightly perturbed initial state.
-
-    The suspension is chaotic: two exact simulations whose initial positions
-    differ by ``1e-6 L`` separate over the trajectory. The error of the
-    perturbed run against the stored truth (computed with the same metrics
-    as a model) is a floor that even a perfect model could not beat.
-
-    Every coordinate of every real particle is shifted by an independent
-    normal draw of standard deviation ``perturbation * L``, then kept inside
-    the wall contact positions ``[-L + a_i, L - a_i]`` (a no-op unless a
-    particle starts within the perturbation of a wall). With
-    ``perturbation = 0`` the result is exactly ``simulate(...) / L``.
-
-    Args:
-      initial_position: ``(N, D)`` stored exact initial centres in m (SI,
-        float64, as stored in the dataset, not the normalised frames).
-      initial_velocity: ``(N, D)`` in m/s. radius: ``(N,)`` in m.
-      config: the :class:`PhysicsConfig` the truth was generated with.
-      key: a ``jax.random`` key (or an int seed).
-      n_frames: frames to return (frame 0 is the perturbed initial state).
-      save_every: Euler steps between frames (15 in the paper).
-      perturbation: standard deviation of the shift, in units of ``L``.
-      mask: optional ``(N,)`` bool for padded particles.
-      x64: run in float64 (inside ``jax.enable_x64(True)``), as the data
-        generator does; ``False`` runs in the session's precision.
-      **simulate_kwargs: passed to :func:`dispgns.physics.simulate`
-        (e.g. ``collision_capacity``, ``chunk_frames``).
-
-    Returns:
-      ``(n_frames, N, D)`` numpy array of positions divided by ``L`` (float64
-      with ``x64``), directly comparable with the stored normalised truth.
-    """
-    if isinstance(key, (int, np.integer)):
-        key = jax.random.PRNGKey(int(key))
-    half = config.box_half_size
-    with jax.enable_x64(x64):
-        dtype = jnp.float64 if x64 else jnp.float32
-        x0 = jnp.asarray(np.asarray(initial_position), dtype)
-        v0 = jnp.asarray(np.asarray(initial_velocity), dtype)
-        a = jnp.asarray(np.asarray(radius), dtype)
-        if x0.ndim != 2 or v0.shape != x0.shape or a.shape != x0.shape[:1]:
-            raise ValueError(
-                f"expected initial_position (N, D), initial_velocity (N, D) and radius (N,), got "
-                f"{x0.shape}, {v0.shape} and {a.shape}"
-            )
-        shifted = perturb_positions(key, x0, a, config, perturbation=perturbation, mask=mask)
-        frames = simulate(
-            shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask, **simulate_kwargs
-        )
-        return np.asarray(frames) / half
-
-
-def perturb_positions(
-    key, initial_position, radius, config: PhysicsConfig, *, perturbation: float = 1e-6, mask=None
-) -> jnp.ndarray:
-    """Initial centres shifted by independent normal draws of std ``perturbation * L`` (the chaos floor's start).
-
-    Shifted centres are kept inside the wall contact positions ``[-L + a_i,
-    L - a_i]`` (only where the noise pushed them across), so an unperturbed
-    or padding particle keeps its exact position.
-
-    Args:
-      key: a ``jax.random`` key.
-      initial_position: ``(N, D)`` centres in m. radius: ``(N,)`` in m.
-      perturbation: std in units of ``L`` (finite, >= 0).
-      mask: optional ``(N,)`` bool; padding particles are not moved.
-
-    Returns:
-      ``(N, D)`` shifted centres in m, in the dtype of ``initial_position``.
-    """
-    if perturbation < 0 or not math.isfinite(perturbation):
-        raise ValueError(f"perturbation must be a finite number >= 0 (units of L), got {perturbation!r}")
-    x0 = jnp.asarray(initial_position)
-    a = jnp.asarray(radius, x0.dtype)
-    half = config.box_half_size
-    noise = jax.random.normal(key, x0.shape, x0.dtype) * (perturbation * half)
-    if mask is not None:
-        noise = noise * _weights(mask, x0.shape[0], x0.dtype)[:, None]
-    shifted = x0 + noise
-    lower, upper = (-half + a)[:, None], (half - a)[:, None]
-    shifted = jnp.where((shifted > upper) & (x0 <= upper), upper, shifted)
-    return jnp.where((shifted < lower) & (x0 >= lower), lower, shifted)
-
-
 # ----------------------------------------------------------------------------
 # reports
 # ----------------------------------------------------------------------------
@@ -546,14 +468,6 @@ def _error_family(prefix: str, curve, mean_diameter: float, box_half_size: float
     return out
 
 
-def _pad_particles(array: np.ndarray, count: int, axis: int, fill) -> np.ndarray:
-    if count == 0:
-        return array
-    shape = list(array.shape)
-    shape[axis] = count
-    return np.concatenate([array, np.full(shape, fill, array.dtype)], axis=axis)
-
-
 def rollout_metrics(
     prediction,
     truth,
@@ -583,7 +497,7 @@ def rollout_metrics(
       wall_tolerance: see :func:`wall_violations`.
       overlap_coeff: see :func:`overlap_counts`.
       chaos_floor: optional ``(T, N, D)`` normalised trajectory from
-        :func:`chaos_floor_rollout`; adds the ``chaos_floor_*`` entries.
+        :func:`dispgns.evaluation.chaos_floor_rollout`; adds the ``chaos_floor_*`` entries.
       physics_config: masses for the kinetic energy (default
         :class:`PhysicsConfig`; only ``thickness`` and ``density`` matter).
 
@@ -646,11 +560,11 @@ def rollout_metrics(
 
     extra = -n % _PARTICLE_BUCKET
     arrays = _metric_arrays_jit(
-        _pad_particles(prediction, extra, 1, 0.0),
-        _pad_particles(truth, extra, 1, 0.0),
-        None if chaos_floor is None else _pad_particles(chaos_floor, extra, 1, 0.0),
-        _pad_particles(radius, extra, 0, 1.0),
-        _pad_particles(real, extra, 0, False),
+        pad_particles(prediction, extra, axis=1, fill=0.0),
+        pad_particles(truth, extra, axis=1, fill=0.0),
+        None if chaos_floor is None else pad_particles(chaos_floor, extra, axis=1, fill=0.0),
+        pad_particles(radius, extra, axis=0, fill=1.0),
+        pad_particles(real, extra, axis=0, fill=False),
         input_frames=c,
         box_half_size=float(box_half_size),
         frame_dt=float(frame_dt),

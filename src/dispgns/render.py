@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import uuid
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -33,6 +32,8 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from dispgns.files import atomic_path
+
 _PAD = 0.04  # margin around the box, in box units
 
 
@@ -42,24 +43,10 @@ _PAD = 0.04  # margin around the box, in box units
 
 
 def _atomic_write(path, write: Callable[[str], None]) -> str:
-    """Call ``write(tmp)`` on a temporary path next to ``path``, then rename it.
-
-    The temporary name keeps ``path``'s extension because writers (Pillow,
-    ffmpeg, savefig) infer the format from it. On any error the temporary
-    file is removed and the error re-raised; ``path`` is untouched.
-    """
-    path = os.fspath(path)
-    directory, name = os.path.split(os.path.abspath(path))
-    suffix = os.path.splitext(name)[1]
-    tmp = os.path.join(directory, f".{name}.{uuid.uuid4().hex}.tmp{suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-    return path
+    """Call ``write(tmp)`` on a temporary path next to ``path`` (same extension), then rename it."""
+    with atomic_path(path) as temporary:
+        write(str(temporary))
+    return os.fspath(path)
 
 
 def _new_figure(figsize, dpi, layout=None) -> Figure:

@@ -1,6 +1,6 @@
-"""The learned simulator: one-step predictions and autoregressive rollouts.
+"""The learned simulator: one-step predictions and rollouts, as pure cores and host conveniences.
 
-Units are normalised box units (positions divided by the half box size ``L``,
+Units are normalised (positions and radii divided by the length scale ``L``;
 the box is ``model_config.bounds``, by default ``[-1, 1]^D``) and frames (one
 frame = one time unit, 1.5 ms in the paper's data).
 
@@ -13,21 +13,19 @@ One step, for the last ``C`` positions ``x_{t-C+1} .. x_t`` of every particle:
    ``acc = (y * acceleration_std + acceleration_mean) * a_i``;
 3. ``v_new = (x_t - x_{t-1}) + acc``, ``x_new = x_t + v_new``.
 
-Graph capacity. Every function takes ``capacity`` (a
-:class:`~dispgns.graph.GraphCapacity` or an int, the number of ordered pairs
-``s != r`` the graph can hold). Called with concrete arrays, ``None`` sizes it
-from the data and an overflow grows it and recomputes; nothing is ever
-dropped. Sizes chosen here are rounded up to a fixed ladder of capacities
-(:func:`dispgns.graph.on_ladder`, rungs ~19 % apart), so that rollouts of
-other trajectories, and steps on other positions, mostly reuse the programs
-already compiled. Under a JAX transformation (``jit``, ``vmap``, ``grad``) sizes
-cannot change: ``capacity`` is then used as given; ``None`` sizes it from the
-positions if they are concrete (e.g. only ``params`` traced) and otherwise
-means all ``N (N - 1)`` pairs (exact but slow). Any overflow poisons the
-affected outputs with NaN instead of silently dropping edges. The default
-candidate search (all pairs or jax-md cell list) is chosen by particle count
-(:data:`dispgns.graph.CELL_LIST_MIN_PARTICLES`); an explicit
-``GraphCapacity(edges, cell)`` chooses it.
+**Pure cores** work under ``jit``, ``vmap``, ``grad`` and ``lax.scan``. The
+graph capacity is a static argument and an overflow is a returned flag
+(the outputs of an overflowing step are NaN, never silently wrong):
+:func:`predict_step`, :func:`predict_step_batch` and :func:`rollout_scan`.
+Size the capacity on the host with :func:`fit_capacity` (with head-room for
+a rollout under ``jit``, where it cannot grow), or take
+:func:`dispgns.graph.full_capacity`, which never overflows.
+
+**Host conveniences** take concrete arrays, size the capacity from the data,
+and grow it and redo the work after an overflow (:func:`dispgns.capacity.drive`):
+:func:`predict_acceleration`, :func:`predict_position`, :func:`rollout`,
+:func:`rollout_batch`. Their result is that of a graph without any size
+limit. Called with traced arrays they raise and name the pure core.
 
 Padding particles (``mask == False``) never influence real ones; their
 outputs are zero accelerations and unchanged positions.
@@ -35,8 +33,9 @@ outputs are zero accelerations and unchanged positions.
 
 from __future__ import annotations
 
-import functools
 import math
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -45,79 +44,58 @@ from jax import lax
 
 from dispgns import features as features_lib
 from dispgns import graph as graph_lib
+from dispgns.arrays import host_array
+from dispgns.capacity import Attempt, drive
 from dispgns.graph import Graph, GraphCapacity
 from dispgns.model import ModelConfig, apply_network
-from dispgns.runtime import network_jit
+from dispgns.tuning import jitted
+
+__all__ = [
+    "PredictedStep",
+    "acceleration_from_output",
+    "build_graph",
+    "fit_capacity",
+    "network_output",
+    "network_output_batch",
+    "predict_acceleration",
+    "predict_position",
+    "predict_step",
+    "predict_step_batch",
+    "rollout",
+    "rollout_batch",
+    "rollout_scan",
+    "sanitize",
+]
 
 
-def _is_traced(*trees) -> bool:
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
+class PredictedStep(NamedTuple):
+    """One learned step (a pytree).
 
-
-def _as_capacity(capacity) -> GraphCapacity | None:
-    if capacity is None or isinstance(capacity, GraphCapacity):
-        return capacity
-    return GraphCapacity(edges=int(capacity))
-
-
-def _keep_concrete(x, dtype):
-    """``x`` as an array of ``dtype``, concrete if ``x`` is.
-
-    Inside a user's ``jit`` every ``jnp`` operation on a closed-over
-    constant returns a tracer, and a graph can only be sized from concrete
-    positions: concrete inputs are therefore converted with numpy.
+    Attributes:
+      acceleration: ``(..., N, D)`` in normalised units per frame^2.
+      position: ``(..., N, D)`` of the next frame.
+      overflow: ``()`` (or ``(B,)``) bool: the graph missed edges, and both
+        arrays are NaN.
     """
-    if isinstance(x, jax.core.Tracer):
-        return jnp.asarray(x, dtype)
-    if isinstance(x, jax.Array) and x.dtype == dtype:
-        return x
-    return np.asarray(x, dtype)
+
+    acceleration: jnp.ndarray
+    position: jnp.ndarray
+    overflow: jnp.ndarray
 
 
-def _float_dtype(x):
-    dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
-    return jax.dtypes.canonicalize_dtype(dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.float32)
+# ----------------------------------------------------------------------------- the pieces of one step
 
 
-def _check(position, radius, mask, model_config: ModelConfig, *, leading: int):
-    """Validate shapes; return arrays (float positions, radius in their dtype, bool mask), concrete if given so."""
-    position = _keep_concrete(position, _float_dtype(position))
-    radius = _keep_concrete(radius, position.dtype)
-    c, d = model_config.input_sequence_length, model_config.dim
-    if position.ndim != 3 or position.shape[0] != leading or position.shape[2] != d:
+def as_capacity(capacity) -> GraphCapacity:
+    """A :class:`GraphCapacity` from a capacity or an int (ordered pairs ``s != r``, all-pairs search)."""
+    if isinstance(capacity, GraphCapacity):
+        return capacity
+    if capacity is None:
         raise ValueError(
-            f"positions must have shape ({leading}, N, {d}) (C = input_sequence_length = {c}, "
-            f"D = dim), got {position.shape}"
+            "a pure core needs a graph capacity: dispgns.fit_capacity(positions, model_config) on the host, "
+            "or dispgns.graph.full_capacity(N), which never overflows"
         )
-    n = position.shape[1]
-    if radius.shape != (n,):
-        raise ValueError(f"radius must have shape ({n},), got {radius.shape}")
-    if n == 0:
-        raise ValueError(f"positions hold no particles: shape {position.shape}")
-    # numpy, not jnp: a default mask must stay concrete inside a user's jit.
-    mask = np.ones((n,), bool) if mask is None else _keep_concrete(mask, np.dtype(bool))
-    if mask.shape != (n,):
-        raise ValueError(f"mask must have shape ({n},), got {mask.shape}")
-    _check_radius(radius, mask)
-    return position, radius, mask
-
-
-def _check_radius(radius, mask):
-    """Radii of real particles must be finite and > 0 (they divide features and accelerations); checked when concrete."""
-    if _is_traced(radius, mask):
-        return
-    real = np.asarray(radius)[np.asarray(mask, bool)]
-    bad = ~(np.isfinite(real) & (real > 0))
-    if np.any(bad):
-        raise ValueError(
-            f"radius must be finite and > 0 for every real particle; got {real[bad][:5].tolist()} "
-            f"({int(bad.sum())} bad value(s))"
-        )
-
-
-def _check_steps(n_steps):
-    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
-        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+    return GraphCapacity(edges=int(capacity))
 
 
 def sanitize(position_seq: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray, model_config: ModelConfig):
@@ -140,9 +118,15 @@ def build_graph(position: jnp.ndarray, mask: jnp.ndarray, capacity: GraphCapacit
     )
 
 
-def network_output(
-    params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph: Graph, *, model_config: ModelConfig
-) -> jnp.ndarray:
+def _standardized_nodes(position_seq, radius, norm, c: ModelConfig):
+    nodes = features_lib.node_features(position_seq, radius, bounds=c.bounds, boundary_clip=c.boundary_clip)
+    n_vel = (c.input_sequence_length - 1) * c.dim
+    mean = jnp.tile(norm["velocity_mean"], c.input_sequence_length - 1).astype(nodes.dtype)
+    std = jnp.tile(norm["velocity_std"], c.input_sequence_length - 1).astype(nodes.dtype)
+    return jnp.concatenate([(nodes[:, :n_vel] - mean) / std, nodes[:, n_vel:]], axis=-1)
+
+
+def network_output(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph: Graph, *, model_config: ModelConfig):
     """Standardised network output ``(N, D)`` for sanitised inputs and a graph (what the loss compares).
 
     Args:
@@ -151,50 +135,10 @@ def network_output(
       radius: ``(N,)``, padding radii > 0.
       graph: from :func:`build_graph` on ``position_seq[-1]``.
     """
-    c = model_config
     norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
-    nodes = _standardized_nodes(position_seq, radius, norm, c)
+    nodes = _standardized_nodes(position_seq, radius, norm, model_config)
     edges = features_lib.edge_features(position_seq, radius, graph.senders, graph.receivers)
-    return apply_network(params["network"], nodes, edges, graph.senders, graph.receivers, model_config=c)
-
-
-def merged_edge_count(graphs: Graph, n: int) -> jnp.ndarray:
-    """Number of real edges (self-loops included) of ``B`` graphs ``(B, E)`` over ``n`` node slots: ``()`` int32."""
-    return jnp.sum(graphs.receivers < n, dtype=jnp.int32)
-
-
-def merge_graphs(graphs: Graph, n: int, edge_budget: int | None = None):
-    """``B`` graphs as one disjoint graph over ``B (n + 1)`` nodes (one dummy node per example).
-
-    Example ``b``'s node ``i`` becomes node ``b (n + 1) + i``; unused edge
-    slots point at the example's dummy node ``b (n + 1) + n``. With an
-    ``edge_budget`` the real edges are moved to the front of a list of that
-    static length (in order, so receivers stay sorted) and the rest of it
-    points at the last dummy node: the per-edge work then scales with the
-    edges the batch has, not with ``B`` times the largest example's capacity.
-
-    Args:
-      graphs: :class:`Graph` with ``(B, E)`` arrays.
-      n: node slots per example.
-      edge_budget: static total edge slots, or ``None`` (``B E`` slots, no
-        compaction).
-
-    Returns:
-      ``(senders, receivers)``, each ``(B E,)`` or ``(edge_budget,)`` int32.
-      Edges beyond ``edge_budget`` are dropped: check
-      :func:`merged_edge_count` ``<= edge_budget`` (the training step does).
-    """
-    b, e = graphs.senders.shape
-    offset = (jnp.arange(b, dtype=jnp.int32) * (n + 1))[:, None]
-    senders = (jnp.minimum(graphs.senders, n) + offset).reshape(b * e)
-    receivers = (jnp.minimum(graphs.receivers, n) + offset).reshape(b * e)
-    if edge_budget is None:
-        return senders, receivers
-    real = (graphs.receivers < n).reshape(b * e)
-    slot = jnp.where(real, jnp.cumsum(real, dtype=jnp.int32) - 1, edge_budget)
-    dummy = jnp.full((edge_budget,), b * (n + 1) - 1, jnp.int32)
-    compact = lambda values: dummy.at[slot].set(values, mode="drop", indices_are_sorted=True)
-    return compact(senders), compact(receivers)
+    return apply_network(params["network"], nodes, edges, graph.senders, graph.receivers, model_config=model_config)
 
 
 def network_output_batch(
@@ -211,13 +155,13 @@ def network_output_batch(
     Merging the examples (rather than vmapping the network) keeps gathers
     and scatters plain and the per-edge matmuls large. Each example gets one
     extra dummy node that absorbs its unused edge slots, so receivers stay
-    sorted and every index is in range (see :func:`merge_graphs`).
+    sorted and every index is in range (see :func:`dispgns.graph.merge_graphs`).
 
     Args:
       position_seq: ``(B, C, N, D)`` sanitised inputs; radius: ``(B, N)``.
       graphs: :class:`Graph` with ``(B, E)`` arrays (e.g. vmapped :func:`build_graph`).
       edge_budget: static total edge slots of the merged graph (``None``:
-        ``B E``); the caller must check :func:`merged_edge_count` against it.
+        ``B E``); the caller checks :func:`dispgns.graph.merged_edge_count` against it.
 
     Returns:
       ``(B, N, D)`` standardised network output.
@@ -227,7 +171,7 @@ def network_output_batch(
     norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
     nodes = jax.vmap(lambda x, a: _standardized_nodes(x, a, norm, c))(position_seq, radius)
     nodes = jnp.concatenate([nodes, jnp.zeros((b, 1, nodes.shape[-1]), nodes.dtype)], axis=1)
-    senders, receivers = merge_graphs(graphs, n, edge_budget)
+    senders, receivers = graph_lib.merge_graphs(graphs, n, edge_budget)
     # Edge features on the merged node arrays (dummy nodes: position 0, radius 1: finite features).
     flat_x = jnp.concatenate([position_seq, jnp.zeros((b, steps, 1, dim), position_seq.dtype)], axis=2)
     flat_x = jnp.moveaxis(flat_x, 1, 0).reshape(steps, b * (n + 1), dim)
@@ -237,39 +181,10 @@ def network_output_batch(
     return out.reshape(b, n + 1, -1)[:, :n]
 
 
-def _standardized_nodes(position_seq, radius, norm, c: ModelConfig):
-    nodes = features_lib.node_features(position_seq, radius, bounds=c.bounds, boundary_clip=c.boundary_clip)
-    n_vel = (c.input_sequence_length - 1) * c.dim
-    mean = jnp.tile(norm["velocity_mean"], c.input_sequence_length - 1).astype(nodes.dtype)
-    std = jnp.tile(norm["velocity_std"], c.input_sequence_length - 1).astype(nodes.dtype)
-    return jnp.concatenate([(nodes[:, :n_vel] - mean) / std, nodes[:, n_vel:]], axis=-1)
-
-
 def acceleration_from_output(params, output: jnp.ndarray, radius: jnp.ndarray) -> jnp.ndarray:
-    """De-standardise the network output: ``(y * std + mean) * a_i``, ``(N, D)`` in box units / frame^2."""
+    """De-standardise the network output: ``(y * std + mean) * a_i``, ``(N, D)`` in normalised units / frame^2."""
     norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
     return (output * norm["acceleration_std"] + norm["acceleration_mean"]) * radius[:, None]
-
-
-def one_step(params, position_seq, radius, mask, capacity: GraphCapacity, model_config: ModelConfig):
-    """One step with a fixed graph capacity (pure; no validation, no overflow handling).
-
-    Args:
-      position_seq: ``(C, N, D)``; radius: ``(N,)``; mask: ``(N,)`` bool.
-      capacity: static :class:`GraphCapacity`; model_config: static.
-
-    Returns:
-      ``(acceleration (N, D), next position (N, D), overflow ())``; when
-      ``overflow`` is True the graph missed edges and the outputs are wrong.
-    """
-    x, a = sanitize(position_seq, radius, mask, model_config)
-    graph = build_graph(x[-1], mask, capacity, model_config)
-    acc = acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
-    acc = jnp.where(mask[:, None], acc, 0.0).astype(position_seq.dtype)
-    last = position_seq[-1]
-    velocity = last - position_seq[-2] + acc
-    next_position = jnp.where(mask[:, None], _constrain(last + velocity, radius, model_config), last)
-    return acc, next_position, graph.overflow
 
 
 def _constrain(position, radius, model_config: ModelConfig):
@@ -281,90 +196,250 @@ def _constrain(position, radius, model_config: ModelConfig):
     return jnp.clip(position, b[:, 0] + a, b[:, 1] - a)
 
 
-@functools.partial(network_jit, static_argnames=("capacity", "model_config"))
-def _step_jit(params, position_seq, radius, mask, *, capacity, model_config):
-    return one_step(params, position_seq, radius, mask, capacity, model_config)
+def _poisoned(x, overflow):
+    """``x`` with NaN where ``overflow`` (broadcast over trailing axes): never silently wrong."""
+    flag = jnp.reshape(overflow, jnp.shape(overflow) + (1,) * (x.ndim - jnp.ndim(overflow)))
+    return jnp.where(flag, jnp.asarray(jnp.nan, x.dtype), x)
 
 
-def _full_capacity(n: int) -> GraphCapacity:
-    return GraphCapacity(edges=n * (n - 1))
+def _inputs(position_seq, radius, mask):
+    position_seq = jnp.asarray(position_seq)
+    if not jnp.issubdtype(position_seq.dtype, jnp.floating):
+        position_seq = position_seq.astype(jnp.float32)
+    radius = jnp.asarray(radius, position_seq.dtype)
+    mask = jnp.ones(radius.shape, bool) if mask is None else jnp.asarray(mask, bool)
+    return position_seq, radius, mask
 
 
-def _predict(params, position_seq, radius, mask, capacity, model_config):
-    position_seq, radius, mask = _check(
-        position_seq, radius, mask, model_config, leading=model_config.input_sequence_length
-    )
-    n = position_seq.shape[1]
-    capacity = _as_capacity(capacity)
-    if _is_traced(params, position_seq, radius, mask):
-        # Under a transformation the graph size cannot adapt: size it from the
-        # positions when they are concrete, else take all pairs.
-        if capacity is None:
-            capacity = (
-                _full_capacity(n)
-                if _is_traced(position_seq, mask)
-                else _fitted(np.asarray(position_seq)[-1], mask, model_config)
-            )
-        acc, nxt, overflow = one_step(params, position_seq, radius, mask, capacity, model_config)
-        poison = jnp.where(overflow, jnp.nan, 0.0).astype(acc.dtype)
-        return acc + poison, nxt + poison
-    if capacity is None:
-        capacity = _fitted(position_seq[-1], mask, model_config)
-    while True:
-        acc, nxt, overflow = _step_jit(params, position_seq, radius, mask, capacity=capacity, model_config=model_config)
-        if not bool(overflow):
-            return acc, nxt
-        capacity = _grown(capacity, position_seq[-1], mask, model_config)
+# ----------------------------------------------------------------------------- pure cores
 
 
-def predict_acceleration(params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None):
-    """Predicted acceleration of every particle for one step.
+def predict_step(params, position_seq, radius, *, model_config: ModelConfig, capacity, mask=None) -> PredictedStep:
+    """One learned step with a fixed graph capacity (pure: ``jit``, ``vmap``, ``grad``, ``lax.scan``).
 
     Args:
       params: ``{"network", "normalization"}`` from :func:`dispgns.init_params`.
-      position_seq: ``(C, N, D)`` last ``C`` positions, oldest first
-        (normalised units).
-      radius: ``(N,)`` radii (normalised units).
+      position_seq: ``(C, N, D)`` last ``C`` positions, oldest first (normalised units).
+      radius: ``(N,)`` radii (normalised units, > 0 for real particles).
       model_config: static :class:`ModelConfig`.
+      capacity: static :class:`GraphCapacity` (or an int: ordered pairs, all-pairs search).
       mask: optional ``(N,)`` bool, ``False`` for padding particles.
-      capacity: optional graph capacity (see the module docstring).
+
+    Returns:
+      :class:`PredictedStep`; with ``overflow`` True the graph missed edges and
+      ``acceleration`` and ``position`` are NaN.
+    """
+    capacity = as_capacity(capacity)
+    position_seq, radius, mask = _inputs(position_seq, radius, mask)
+    x, a = sanitize(position_seq, radius, mask, model_config)
+    graph = build_graph(x[-1], mask, capacity, model_config)
+    acc = acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
+    acc = jnp.where(mask[:, None], acc, 0.0).astype(position_seq.dtype)
+    last = position_seq[-1]
+    velocity = last - position_seq[-2] + acc
+    nxt = jnp.where(mask[:, None], _constrain(last + velocity, radius, model_config), last)
+    return PredictedStep(_poisoned(acc, graph.overflow), _poisoned(nxt, graph.overflow), graph.overflow)
+
+
+def predict_step_batch(
+    params,
+    position_seq,
+    radius,
+    *,
+    model_config: ModelConfig,
+    capacity,
+    mask=None,
+    edge_budget: int | None = None,
+) -> PredictedStep:
+    """:func:`predict_step` for ``B`` trajectories at once, evaluated as one disjoint graph (pure).
+
+    Args:
+      position_seq: ``(B, C, N, D)``; radius, mask: ``(B, N)``.
+      capacity: static, per trajectory.
+      edge_budget: static total edge slots of the merged graph (see
+        :func:`dispgns.graph.merge_graphs`); exceeding it sets every overflow flag.
+
+    Returns:
+      :class:`PredictedStep` with ``(B, N, D)`` arrays and ``overflow`` ``(B,)``.
+    """
+    capacity = as_capacity(capacity)
+    position_seq, radius, mask = _inputs(position_seq, radius, mask)
+    x, a = jax.vmap(lambda p, r, m: sanitize(p, r, m, model_config))(position_seq, radius, mask)
+    graphs = jax.vmap(lambda p, m: build_graph(p, m, capacity, model_config))(x[:, -1], mask)
+    output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
+    acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
+    acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
+    last = position_seq[:, -1]
+    moved = _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config)
+    nxt = jnp.where(mask[..., None], moved, last)
+    overflow = graphs.overflow
+    if edge_budget is not None:
+        overflow = overflow | (graph_lib.merged_edge_count(graphs, x.shape[2]) > edge_budget)
+    return PredictedStep(_poisoned(acc, overflow), _poisoned(nxt, overflow), overflow)
+
+
+def rollout_scan(
+    params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, capacity, mask=None
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Autoregressive rollout as one ``lax.scan`` with a fixed graph capacity (pure).
+
+    Works under ``jit``, ``vmap`` (over trajectories of equal padded size) and
+    ``grad`` (with respect to ``params``, positions and radii). The graph is
+    rebuilt at every step; it cannot grow here, so size ``capacity`` for the
+    whole rollout (``fit_capacity(truth, model_config)`` when a ground truth
+    exists, else ``fit_capacity(initial_positions[-1], model_config, margin=0.5)``)
+    and check the flags.
+
+    Args:
+      initial_positions: ``(C, N, D)`` first ``C`` frames (normalised units).
+      radius: ``(N,)``; mask: optional ``(N,)`` bool.
+      n_steps: static, frames to predict.
+      capacity: static :class:`GraphCapacity` (or an int).
+
+    Returns:
+      ``(positions (n_steps, N, D), overflow (n_steps,) bool)``: frames ``C ..
+      C + n_steps - 1``; ``overflow[k]`` says some step up to ``k`` overflowed,
+      and every frame from the first overflowing step on is NaN.
+    """
+    capacity = as_capacity(capacity)
+    window, radius, mask = _inputs(initial_positions, radius, mask)
+
+    def body(carry, _):
+        window, overflow = carry
+        step = predict_step(params, window, radius, model_config=model_config, capacity=capacity, mask=mask)
+        overflow = overflow | step.overflow
+        return (jnp.concatenate([window[1:], step.position[None]], axis=0), overflow), (step.position, overflow)
+
+    _, (positions, flags) = lax.scan(body, (window, jnp.zeros((), bool)), None, length=n_steps)
+    return _poisoned(positions, flags), flags
+
+
+# ----------------------------------------------------------------------------- host conveniences
+
+
+def fit_capacity(position, model_config: ModelConfig, *, mask=None, margin: float = 0.05) -> GraphCapacity:
+    """:func:`dispgns.graph.fit_capacity` with the model's radius and box: fits every frame of ``position``.
+
+    Args:
+      position: concrete ``(..., N, D)`` positions (normalised units).
+      mask: ``None`` or bool broadcastable to ``position.shape[:-1]``.
+      margin: relative head-room (``0.5`` for a rollout under ``jit`` from its initial frames).
+    """
+    return graph_lib.fit_capacity(
+        position,
+        mask,
+        connectivity_radius=model_config.connectivity_radius,
+        bounds=model_config.bounds,
+        margin=margin,
+    )
+
+
+def _grower(model_config: ModelConfig, mask):
+    """``(capacity, window) -> larger capacity`` fitted at the window's last frame (``axis``: frames)."""
+
+    def grow(capacity, window):
+        last = np.asarray(window)[..., -1, :, :]
+        return graph_lib.grow_capacity(
+            capacity,
+            last.shape[-2],
+            last,
+            mask,
+            connectivity_radius=model_config.connectivity_radius,
+            bounds=model_config.bounds,
+        )
+
+    return grow
+
+
+def _host_inputs(position_seq, radius, mask, model_config: ModelConfig, *, batched: bool, pure: str):
+    """Concrete, validated inputs of a host convenience: float positions, radius in their dtype, bool mask."""
+    x = host_array(position_seq, "positions", pure=pure)
+    if not np.issubdtype(x.dtype, np.floating):
+        x = x.astype(np.float32)
+    c, d = model_config.input_sequence_length, model_config.dim
+    lead = "(B, " if batched else "("
+    if x.ndim != 3 + batched or x.shape[batched] != c or x.shape[-1] != d:
+        raise ValueError(
+            f"positions must have shape {lead}{c}, N, {d}) (C = input_sequence_length = {c}, D = dim), got {x.shape}"
+        )
+    n = x.shape[-2]
+    if n == 0:
+        raise ValueError(f"positions hold no particles: shape {x.shape}")
+    particles = x.shape[:1] + (n,) if batched else (n,)
+    a = host_array(radius, "radius", pure=pure).astype(x.dtype)
+    if a.shape != particles:
+        raise ValueError(f"radius must have shape {particles}, got {a.shape}")
+    m = np.ones(particles, bool) if mask is None else host_array(mask, "mask", pure=pure).astype(bool)
+    if m.shape != particles:
+        raise ValueError(f"mask must have shape {particles}, got {m.shape}")
+    bad = ~(np.isfinite(a) & (a > 0)) & m
+    if np.any(bad):
+        raise ValueError(
+            f"radius must be finite and > 0 for every real particle; got {a[bad][:5].tolist()} "
+            f"({int(bad.sum())} bad value(s))"
+        )
+    return x, a, m
+
+
+def _check_steps(n_steps):
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int | np.integer) or n_steps < 1:
+        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+
+
+def _predict_once(params, position_seq, radius, mask, capacity, model_config, compiler_options) -> PredictedStep:
+    x, a, m = _host_inputs(position_seq, radius, mask, model_config, batched=False, pure="dispgns.predict_step")
+    capacity = fit_capacity(x[-1], model_config, mask=m) if capacity is None else as_capacity(capacity)
+    step = jitted(predict_step, compiler_options, static_argnames=("model_config", "capacity"))
+
+    def attempt(window, capacity, _):
+        out = step(params, window, a, model_config=model_config, capacity=capacity, mask=m)
+        if bool(out.overflow):
+            return Attempt(window, None, 0, True)
+        return Attempt(window, out, 1, False)
+
+    _, (out,), _ = drive(attempt, x, capacity, _grower(model_config, m))
+    return out
+
+
+def predict_acceleration(
+    params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None, compiler_options=None
+):
+    """Predicted acceleration of every particle for one step (host; see :func:`predict_step` for the pure core).
+
+    Args:
+      params: ``{"network", "normalization"}`` from :func:`dispgns.init_params`.
+      position_seq: concrete ``(C, N, D)`` last ``C`` positions, oldest first (normalised units).
+      radius: ``(N,)`` radii (normalised units).
+      model_config: :class:`ModelConfig`.
+      mask: optional ``(N,)`` bool, ``False`` for padding particles.
+      capacity: the first graph capacity to try (``None``: fitted to the positions); grown if too small.
+      compiler_options: XLA options for the compiled step (e.g.
+        :func:`dispgns.tuning.network_compiler_options`).
 
     Returns:
       ``(N, D)`` acceleration in normalised units per frame^2 (the change of
       velocity over the next frame); zero for padding particles.
     """
-    return _predict(params, position_seq, radius, mask, capacity, model_config)[0]
+    return _predict_once(params, position_seq, radius, mask, capacity, model_config, compiler_options).acceleration
 
 
-def predict_position(params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None):
-    """Predicted next position ``x_t + (x_t - x_{t-1}) + acc``, ``(N, D)`` (arguments as :func:`predict_acceleration`).
+def predict_position(
+    params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None, compiler_options=None
+):
+    """Predicted next position ``x_t + (x_t - x_{t-1}) + acc``, ``(N, D)`` (host).
 
-    Padding particles keep their last position.
+    Arguments as :func:`predict_acceleration`; padding particles keep their last position.
     """
-    return _predict(params, position_seq, radius, mask, capacity, model_config)[1]
+    return _predict_once(params, position_seq, radius, mask, capacity, model_config, compiler_options).position
 
 
-def _scan_steps(params, window, radius, mask, *, length: int, capacity: GraphCapacity, model_config: ModelConfig):
-    """``length`` steps from ``window`` (C, N, D); returns (last window, positions (length, N, D), overflow)."""
-
-    def body(carry, _):
-        window, overflow = carry
-        _, nxt, step_overflow = one_step(params, window, radius, mask, capacity, model_config)
-        overflow = overflow | step_overflow
-        window = jnp.concatenate([window[1:], nxt[None]], axis=0)
-        return (window, overflow), (nxt, overflow)
-
-    (window, _), (positions, flags) = lax.scan(body, (window, jnp.zeros((), bool)), None, length=length)
-    return window, positions, flags
-
-
-def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
-    """Up to ``limit`` steps of ``step(window) -> (next, overflow ())``, stopping after an overflowing one.
+def steps_until_overflow(step: Callable, window, limit, *, length: int, axis: int):
+    """Up to ``limit`` steps of ``step(window) -> (next frame, overflow ())``, stopping after an overflowing one.
 
     ``window`` holds the last ``C`` frames along ``axis`` (0 for one
     trajectory ``(C, N, D)``, 1 for a batch ``(B, C, N, D)``); ``limit`` is
     traced (at most the static ``length``), so one compilation serves every
-    chunk. ``step`` returns the next frame with the window's dtype.
+    chunk of a host loop. Pure (a ``lax.while_loop``).
 
     Returns:
       ``(window, positions (length, ...), steps taken (), overflow ())``; when
@@ -391,64 +466,53 @@ def _steps_until_overflow(step, window, limit, *, length: int, axis: int):
     return window, positions, taken, overflow
 
 
-@functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
-def _rollout_chunk(
-    params, window, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config: ModelConfig
-):
-    """Up to ``limit`` steps of one trajectory, stopping at an overflow (see :func:`_steps_until_overflow`)."""
-    step = lambda w: one_step(params, w, radius, mask, capacity, model_config)[1:]
-    return _steps_until_overflow(step, window, limit, length=length, axis=0)
+def _rollout_chunk(params, window, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config):
+    """Up to ``limit`` steps of one trajectory, stopping at an overflow (see :func:`steps_until_overflow`)."""
+
+    def step(w):
+        out = predict_step(params, w, radius, model_config=model_config, capacity=capacity, mask=mask)
+        return out.position, out.overflow
+
+    return steps_until_overflow(step, window, limit, length=length, axis=0)
 
 
-@functools.partial(network_jit, static_argnames=("length", "capacity", "model_config"))
-def _rollout_chunk_batch(
-    params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config: ModelConfig
-):
+def _rollout_chunk_batch(params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config):
     """:func:`_rollout_chunk` of ``B`` windows ``(B, C, N, D)``; positions ``(length, B, N, D)``."""
 
     def step(w):
-        _, nxt, overflow = one_step_batch(params, w, radius, mask, capacity, model_config)
-        return nxt, jnp.any(overflow)
+        out = predict_step_batch(params, w, radius, model_config=model_config, capacity=capacity, mask=mask)
+        return out.position, jnp.any(out.overflow)
 
-    return _steps_until_overflow(step, windows, limit, length=length, axis=1)
+    return steps_until_overflow(step, windows, limit, length=length, axis=1)
 
 
-def _roll_in_chunks(
-    run_chunk, window, n_steps: int, chunk_size: int, capacity: GraphCapacity, grow, *, axis: int, progress=None
-):
-    """The host loop of the concrete rollouts: compiled chunks, capacity grown after an overflow.
+def _roll(chunk, args, window, n_steps, chunk_size, capacity, grow, progress, compiler_options, model_config):
+    """The host loop of :func:`rollout` and :func:`rollout_batch`: compiled chunks driven by :func:`drive`.
 
-    ``run_chunk(window, limit, length, capacity)`` is a ``_rollout_chunk*``
-    call; ``grow(capacity, last frame)`` returns a larger capacity. A chunk
-    stops at its first overflowing step, so only that step is computed
-    again (with the larger graph). ``progress(done)`` is called whenever
-    steps were kept. Returns positions ``(n_steps, ...)``.
+    ``chunk`` is :func:`_rollout_chunk` or :func:`_rollout_chunk_batch`;
+    ``args`` are its ``(params, radius, mask)``.
     """
-    n_chunks = math.ceil(n_steps / max(1, chunk_size))
-    length = math.ceil(n_steps / n_chunks)
-    chunks, done = [], 0
-    while done < n_steps:
-        limit = min(length, n_steps - done)
-        new_window, positions, taken, overflow = run_chunk(window, jnp.int32(limit), length, capacity)
+    params, radius, mask = args
+    length = math.ceil(n_steps / math.ceil(n_steps / max(1, chunk_size)))
+    run_chunk = jitted(chunk, compiler_options, static_argnames=("length", "capacity", "model_config"))
+
+    def attempt(window, capacity, remaining):
+        new_window, positions, taken, overflow = run_chunk(
+            params,
+            window,
+            radius,
+            mask,
+            jnp.int32(min(length, remaining)),
+            length=length,
+            capacity=capacity,
+            model_config=model_config,
+        )
         taken, overflow = int(taken), bool(overflow)
-        valid = taken - 1 if overflow else taken
-        if valid:
-            chunks.append(positions[:valid])
-            done += valid
-            if progress is not None:
-                progress(done)
-        # After an overflow the window is the one before the overflowing step
-        # (whose graph missed edges): go on from it with a graph that fits.
-        window = new_window
-        if not overflow:
-            continue
-        grown = grow(capacity, jnp.take(window, window.shape[axis] - 1, axis=axis))
-        if grown == capacity:
-            raise RuntimeError(
-                f"the graph overflows {capacity}, which cannot grow (every pair already fits): "
-                "the positions at that step are probably not finite"
-            )
-        capacity = grown
+        kept = taken - 1 if overflow else taken
+        # After an overflow the window is the one before the overflowing step: go on from it.
+        return Attempt(new_window, positions[:kept] if kept else None, kept, overflow)
+
+    _, chunks, _ = drive(attempt, window, capacity, grow, total=n_steps, progress=progress)
     return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
 
 
@@ -462,112 +526,52 @@ def rollout(
     mask=None,
     capacity=None,
     chunk_size: int = 50,
+    compiler_options: Mapping[str, Any] | None = None,
+    progress: Callable[[int], None] | None = None,
 ):
-    """Autoregressive rollout of ``n_steps`` frames (compiled loops, graph rebuilt at every step).
+    """Autoregressive rollout of ``n_steps`` frames (host; :func:`rollout_scan` is the pure core).
 
-    With concrete arrays the steps run in compiled chunks of about
-    ``chunk_size``; a chunk stops at a step whose graph overflowed, the
-    capacity is grown and that step is recomputed, so the result is exactly
-    that of a graph without any size limit. Under ``jit``/``vmap``/
-    ``grad`` the whole rollout is one scan with the given ``capacity`` (when
-    ``None``: sized from concrete initial positions with 50 % head-room, or
-    all ``N (N - 1)`` pairs if they are traced too); every frame from the
-    first overflowing step on is NaN. It is vmappable over trajectories of
-    equal (padded) size and differentiable with respect to ``params``,
-    positions and radii.
+    The steps run in compiled chunks of about ``chunk_size``; a chunk stops at
+    a step whose graph overflowed, the capacity grows and that step is
+    recomputed, so the result is exactly that of a graph without any size
+    limit. Capacities sized here land on the ladder of
+    :mod:`dispgns.capacity`, so rollouts of other trajectories mostly reuse
+    the programs already compiled.
 
     Args:
       params: from :func:`dispgns.init_params`.
-      initial_positions: ``(C, N, D)`` first ``C`` frames (normalised units).
+      initial_positions: concrete ``(C, N, D)`` first ``C`` frames (normalised units).
       radius: ``(N,)`` radii (normalised units).
-      n_steps: static, number of frames to predict.
-      model_config: static :class:`ModelConfig`.
+      n_steps: number of frames to predict.
+      model_config: :class:`ModelConfig`.
       mask: optional ``(N,)`` bool, ``False`` for padding particles.
-      capacity: optional graph capacity.
-      chunk_size: static, steps per compiled chunk in the concrete path
-        (the host checks for an overflow between chunks; a chunk stops at
-        its first overflowing step, so only that step is redone). On the
-        CPU the chunks are compiled with
-        :func:`dispgns.network_compiler_options`.
+      capacity: the first graph capacity (``None``: fitted to the initial frame with 10 % head-room).
+      chunk_size: steps per compiled chunk.
+      compiler_options: XLA options for the chunks (e.g.
+        :func:`dispgns.tuning.network_compiler_options`).
+      progress: ``progress(done_steps)`` whenever steps are kept.
 
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    window, radius, mask = _check(
-        initial_positions, radius, mask, model_config, leading=model_config.input_sequence_length
+    window, a, m = _host_inputs(
+        initial_positions, radius, mask, model_config, batched=False, pure="dispgns.rollout_scan"
     )
-    n = window.shape[1]
     _check_steps(n_steps)
-    capacity = _as_capacity(capacity)
-    if _is_traced(params, window, radius, mask):
-        if capacity is None:
-            if _is_traced(window, mask):
-                capacity = _full_capacity(n)
-            else:
-                capacity = _fitted(np.asarray(window)[-1], mask, model_config, margin=0.5)
-        _, positions, flags = _scan_steps(
-            params, window, radius, mask, length=n_steps, capacity=capacity, model_config=model_config
-        )
-        return positions + jnp.where(flags, jnp.nan, 0.0).astype(positions.dtype)[:, None, None]
-
-    if capacity is None:
-        capacity = _fitted(window[-1], mask, model_config, margin=0.1)
-    run_chunk = lambda w, limit, length, capacity: _rollout_chunk(
-        params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config
+    capacity = fit_capacity(window[-1], model_config, mask=m, margin=0.1) if capacity is None else as_capacity(capacity)
+    grow = _grower(model_config, m)
+    return _roll(
+        _rollout_chunk,
+        (params, a, m),
+        window,
+        n_steps,
+        chunk_size,
+        capacity,
+        grow,
+        progress,
+        compiler_options,
+        model_config,
     )
-    grow = lambda capacity, position: _grown(capacity, position, mask, model_config)
-    return _roll_in_chunks(run_chunk, window, n_steps, chunk_size, capacity, grow, axis=0)
-
-
-def _fitted(position, mask, model_config: ModelConfig, *, margin: float = 0.05) -> GraphCapacity:
-    """A capacity on the ladder that fits the graph of ``position`` ``(N, D)`` with ``margin`` head-room (eager).
-
-    On the ladder, calls on other positions and other trajectories mostly
-    land on a capacity whose programs are already compiled.
-    """
-    fit = graph_lib.capacity_for(
-        position, mask, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds, margin=margin
-    )
-    return graph_lib.on_ladder(fit, position.shape[0])
-
-
-def _grown(capacity: GraphCapacity, position, mask, model_config: ModelConfig) -> GraphCapacity:
-    """A capacity larger than ``capacity`` that fits the graph of ``position`` ``(N, D)`` with head-room."""
-    return _batch_capacity(capacity, np.asarray(position)[None], np.asarray(mask)[None], model_config, margin=0.2)
-
-
-def one_step_batch(
-    params,
-    position_seq,
-    radius,
-    mask,
-    capacity: GraphCapacity,
-    model_config: ModelConfig,
-    edge_budget: int | None = None,
-):
-    """:func:`one_step` for ``B`` trajectories at once, evaluated as one disjoint graph.
-
-    Args:
-      position_seq: ``(B, C, N, D)``; radius, mask: ``(B, N)``.
-      edge_budget: static total edge slots of the merged graph (see
-        :func:`merge_graphs`); exceeding it sets every overflow flag.
-
-    Returns:
-      ``(acceleration (B, N, D), next position (B, N, D), overflow (B,))``.
-    """
-    x, a = jax.vmap(lambda p, r, m: sanitize(p, r, m, model_config))(position_seq, radius, mask)
-    graphs = jax.vmap(lambda p, m: build_graph(p, m, capacity, model_config))(x[:, -1], mask)
-    output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
-    acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
-    acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
-    last = position_seq[:, -1]
-    next_position = jnp.where(
-        mask[..., None], _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config), last
-    )
-    overflow = graphs.overflow
-    if edge_budget is not None:
-        overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > edge_budget)
-    return acc, next_position, overflow
 
 
 def rollout_batch(
@@ -580,86 +584,46 @@ def rollout_batch(
     mask=None,
     capacity=None,
     chunk_size: int = 50,
-    progress=None,
+    compiler_options: Mapping[str, Any] | None = None,
+    progress: Callable[[int], None] | None = None,
 ):
-    """Rollouts of ``B`` trajectories of equal padded size in one compiled program per chunk.
+    """Rollouts of ``B`` trajectories of equal padded size in one compiled program per chunk (host).
 
     The same result as :func:`rollout` of each trajectory (padding never
     changes a real particle), computed on one disjoint graph of all ``B``
-    trajectories per step, with the same chunked overflow handling: after an
-    overflow in any trajectory the capacity grows and every trajectory is
-    recomputed from the first overflowing step on. Concrete arrays only
-    (under ``jit``/``vmap`` use ``jax.vmap(rollout)``).
+    trajectories per step, with the same overflow handling: after an
+    overflow in any trajectory the capacity grows and every trajectory
+    redoes that step. Under ``jit`` use ``jax.vmap(rollout_scan)``.
 
     Args:
-      params: from :func:`dispgns.init_params`.
-      initial_positions: ``(B, C, N, D)`` first ``C`` frames (normalised
-        units), padding rows anywhere (masked).
-      radius: ``(B, N)`` radii (normalised units).
-      n_steps: frames to predict.
-      model_config: static :class:`ModelConfig`.
-      mask: optional ``(B, N)`` bool, ``False`` for padding particles.
-      capacity: optional graph capacity per trajectory (``None``: sized from
+      initial_positions: concrete ``(B, C, N, D)`` first ``C`` frames
+        (normalised units), padding rows anywhere (masked).
+      radius: ``(B, N)`` radii. mask: optional ``(B, N)`` bool.
+      capacity: the first graph capacity per trajectory (``None``: fitted to
         the initial frames of every trajectory).
-      chunk_size: steps per compiled chunk.
-      progress: optional ``progress(done_steps)`` callback whenever steps are done
-        (after each chunk, and before a capacity growth).
+      Other arguments as :func:`rollout`.
 
     Returns:
       ``(B, n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    windows = jnp.asarray(initial_positions)
-    if not jnp.issubdtype(windows.dtype, jnp.floating):
-        windows = windows.astype(jnp.float32)
-    c, d = model_config.input_sequence_length, model_config.dim
-    if windows.ndim != 4 or windows.shape[1] != c or windows.shape[3] != d:
-        raise ValueError(f"initial_positions must have shape (B, {c}, N, {d}), got {windows.shape}")
-    b, _, n, _ = windows.shape
-    radius = jnp.asarray(radius, windows.dtype)
-    if radius.shape != (b, n):
-        raise ValueError(f"radius must have shape ({b}, {n}), got {radius.shape}")
-    mask = np.ones((b, n), bool) if mask is None else np.asarray(mask, bool)
-    if mask.shape != (b, n):
-        raise ValueError(f"mask must have shape ({b}, {n}), got {mask.shape}")
-    _check_radius(radius, mask)
-    _check_steps(n_steps)
-    if _is_traced(params, windows, radius):
-        raise ValueError("rollout_batch needs concrete arrays; under a transformation use jax.vmap(rollout)")
-    mask = jnp.asarray(mask)
-    capacity = _as_capacity(capacity)
-    if capacity is None:
-        capacity = _batch_capacity(None, windows[:, -1], mask, model_config, margin=0.1)
-    run_chunk = lambda w, limit, length, capacity: _rollout_chunk_batch(
-        params, w, radius, mask, limit, length=length, capacity=capacity, model_config=model_config
+    windows, a, m = _host_inputs(
+        initial_positions, radius, mask, model_config, batched=True, pure="jax.vmap(dispgns.rollout_scan)"
     )
-    # One trajectory's overflow stops them all; every graph is refitted at that frame.
-    grow = lambda capacity, position: _batch_capacity(capacity, position, mask, model_config, margin=0.2)
-    positions = _roll_in_chunks(run_chunk, windows, n_steps, chunk_size, capacity, grow, axis=1, progress=progress)
+    _check_steps(n_steps)
+    capacity = (
+        fit_capacity(windows[:, -1], model_config, mask=m, margin=0.1) if capacity is None else as_capacity(capacity)
+    )
+    grow = _grower(model_config, m)
+    positions = _roll(
+        _rollout_chunk_batch,
+        (params, a, m),
+        windows,
+        n_steps,
+        chunk_size,
+        capacity,
+        grow,
+        progress,
+        compiler_options,
+        model_config,
+    )
     return jnp.moveaxis(positions, 0, 1)
-
-
-def _batch_capacity(
-    capacity: GraphCapacity | None, positions, mask, model_config: ModelConfig, *, margin: float
-) -> GraphCapacity:
-    """A capacity on the ladder that fits every graph of ``positions`` ``(B, N, D)`` (grown past ``capacity``)."""
-    positions, mask = np.asarray(positions), np.asarray(mask)
-    use_cells = None if capacity is None else capacity.cell is not None
-    fits = [
-        graph_lib.capacity_for(
-            p,
-            m,
-            connectivity_radius=model_config.connectivity_radius,
-            bounds=model_config.bounds,
-            use_cell_list=use_cells,
-            margin=margin,
-        )
-        for p, m in zip(positions, mask)
-    ]
-    cells = [f.cell for f in fits if f.cell is not None]
-    fit = GraphCapacity(edges=max(f.edges for f in fits), cell=max(cells) if cells else None)
-    n = positions.shape[1]
-    if capacity is None:
-        return graph_lib.on_ladder(fit, n)
-    grown = graph_lib.grow_capacity(capacity, n, factor=1.25)
-    cell = None if capacity.cell is None else max(grown.cell, fit.cell or 0)
-    return graph_lib.on_ladder(GraphCapacity(edges=max(grown.edges, fit.edges), cell=cell), n)

@@ -39,6 +39,7 @@ from typing import Any
 __all__ = [
     "Thresholds",
     "host_allocator_tuned",
+    "jitted",
     "network_compiler_options",
     "physics_compiler_options",
     "supported_compiler_options",
@@ -170,6 +171,22 @@ def _supported(items: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...
             continue
         kept.append((name, value))
     return tuple(kept)
+
+
+def jitted(fun, compiler_options: Mapping[str, Any] | None = None, *, static_argnames: tuple[str, ...] = ()):
+    """``jax.jit(fun, static_argnames=..., compiler_options=...)``, one jitted object per ``(fun, options)``.
+
+    The host drivers compile their module-level functions through this, so
+    that a call with the same options reuses the same compilation cache.
+    """
+    return _jitted(fun, tuple(sorted((compiler_options or {}).items())), tuple(static_argnames))
+
+
+@functools.cache
+def _jitted(fun, options: tuple[tuple[str, Any], ...], static_argnames: tuple[str, ...]):
+    import jax
+
+    return jax.jit(fun, static_argnames=static_argnames, compiler_options=dict(options) or None)
 
 
 def tuned_model_config(model_config):

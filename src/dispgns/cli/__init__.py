@@ -27,6 +27,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learned simulation of finite-size particle suspensions (graph network simulator).",
     )
     parser.add_argument("--version", action="version", version=f"dispgns {__version__}")
+    parser.add_argument(
+        "--no-tuning",
+        action="store_true",
+        help="run without dispgns.tuning's CPU settings (host allocator, XLA options, fused kernels): "
+        "the same results to float rounding, slower",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:
         try:
@@ -45,6 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
+    if not args.no_tuning:
+        from dispgns.tuning import tune_host_allocator
+
+        tune_host_allocator()  # before the command's first JAX computation
     try:
         return int(args.func(args) or 0)
     except CLIError as error:

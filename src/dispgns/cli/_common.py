@@ -31,6 +31,25 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+def cpu_tuned(args) -> bool:
+    """Whether the command runs with :mod:`dispgns.tuning`'s settings (all but ``--no-tuning``)."""
+    return not getattr(args, "no_tuning", False)
+
+
+def network_options(args, model_config) -> dict:
+    """XLA options for the network's compiled loops (``{}`` with ``--no-tuning``)."""
+    from dispgns import tuning
+
+    return tuning.network_compiler_options(model_config) if cpu_tuned(args) else {}
+
+
+def physics_options(args) -> dict:
+    """XLA options for the physics' compiled loops (``{}`` with ``--no-tuning``)."""
+    from dispgns import tuning
+
+    return tuning.physics_compiler_options() if cpu_tuned(args) else {}
+
+
 def add_model_argument(parser) -> None:
     parser.add_argument(
         "--model",
@@ -52,7 +71,7 @@ def add_model_argument(parser) -> None:
 
 
 def load_model_argument(args):
-    """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: the shipped model)."""
+    """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: shipped model)."""
     params, model_config, info = _load(args)
     if getattr(args, "keep_inside_box", None) is not None:
         model_config = dataclasses.replace(model_config, keep_inside_box=args.keep_inside_box == "on")

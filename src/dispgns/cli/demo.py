@@ -8,7 +8,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import add_model_argument, fmt, load_model_argument
+from dispgns.cli._common import add_model_argument, fmt, load_model_argument, network_options, physics_options
 
 DEFAULT_SEED = 2025
 DEFAULT_RADII_MM = "2.25,3.25,3.75,4.75"  # one of the paper's unseen-radii groups
@@ -93,7 +93,15 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
     truth = (
         np.asarray(
-            simulate(state.position, state.velocity, state.radius, config, n_frames=args.frames, save_every=save_every)
+            simulate(
+                state.position,
+                state.velocity,
+                state.radius,
+                config,
+                n_frames=args.frames,
+                save_every=save_every,
+                compiler_options=physics_options(args),
+            )
         )
         / half
     )
@@ -109,7 +117,10 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
 
     prediction = predict_trajectories(
-        params, [SimpleNamespace(position=truth, radius=radius)], model_config=model_config
+        params,
+        [SimpleNamespace(position=truth, radius=radius)],
+        model_config=model_config,
+        compiler_options=network_options(args, model_config),
     )[0]
     timings["gnn_rollout_s"] = time.perf_counter() - start
     steps = args.frames - c
@@ -128,7 +139,9 @@ def run(args: argparse.Namespace) -> int:
             initial_velocity=np.asarray(state.velocity, np.float64),
             initial_radius=np.asarray(state.radius, np.float64),
         )
-        chaos = chaos_floor_trajectories([initial], config, n_frames=args.frames, save_every=save_every)[0]
+        chaos = chaos_floor_trajectories(
+            [initial], config, n_frames=args.frames, save_every=save_every, compiler_options=physics_options(args)
+        )[0]
         timings["chaos_floor_s"] = time.perf_counter() - start
 
     metrics = rollout_metrics(

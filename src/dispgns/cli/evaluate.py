@@ -7,7 +7,15 @@ import sys
 from pathlib import Path
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import add_model_argument, fmt, load_model_argument, mean_std, sigterm_as_interrupt
+from dispgns.cli._common import (
+    add_model_argument,
+    fmt,
+    load_model_argument,
+    mean_std,
+    network_options,
+    physics_options,
+    sigterm_as_interrupt,
+)
 
 
 def register(subparsers) -> None:
@@ -45,7 +53,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dispgns.data import DatasetError, load_dataset
-    from dispgns.data.format import staged_directory
+    from dispgns.files import staged_directory
 
     params, model_config, info = load_model_argument(args)
     try:
@@ -114,7 +122,7 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
             leave=False,
         )
 
-        def progress(stage, amount, bar=bar):
+        def progress(stage, amount, bar=bar, split=split):
             if stage == "rollout":
                 bar.update(amount)
             else:
@@ -135,6 +143,8 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
                 n_frames=frames,
                 batch_size=args.batch_size,
                 progress=progress,
+                compiler_options=network_options(args, model_config),
+                physics_compiler_options=physics_options(args),
             )
         finally:
             bar.close()

@@ -7,7 +7,7 @@ import contextlib
 import time
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import sigterm_as_interrupt
+from dispgns.cli._common import physics_options, sigterm_as_interrupt
 
 _COUNT_OPTIONS = (("train", "train"), ("valid", "valid"), ("test", "test"), ("unseen", "test_unseen"))
 
@@ -158,7 +158,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         with precision, sigterm_as_interrupt():
             metadata = generate_dataset(
-                spec, args.out, args.seed, overwrite=args.overwrite, batch_size=args.batch_size, progress=bars
+                spec,
+                args.out,
+                args.seed,
+                overwrite=args.overwrite,
+                batch_size=args.batch_size,
+                progress=bars,
+                compiler_options=physics_options(args),
             )
     except (FileExistsError, PlacementError, DatasetError, ValueError) as error:
         raise CLIError(str(error)) from None

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import add_model_argument, load_model_argument
+from dispgns.cli._common import add_model_argument, load_model_argument, network_options
 
 
 def register(subparsers) -> None:
@@ -100,7 +100,11 @@ def run(args: argparse.Namespace) -> int:
     else:
         params, model_config, _ = load_model_argument(args)
         input_frames = model_config.input_sequence_length
-        prediction = np.asarray(predict_trajectories(params, [truth], model_config=model_config)[0])
+        prediction = np.asarray(
+            predict_trajectories(
+                params, [truth], model_config=model_config, compiler_options=network_options(args, model_config)
+            )[0]
+        )
     frames = prediction.shape[0]
     truth_frames = np.asarray(truth.position)[:frames]
     grid_frames = grid_text if grid_text is not None else np.linspace(0, frames - 1, 5).round().astype(int).tolist()

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import sigterm_as_interrupt
+from dispgns.cli._common import network_options, sigterm_as_interrupt
 
 # Training fields that may change when a run is resumed: they decide how long
 # and how often, not what is learned.
@@ -242,9 +242,8 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     from dispgns.data import DatasetError, load_dataset
-    from dispgns.data.examples import BatchStream
     from dispgns.render import plot_training_curve
-    from dispgns.training import compute_normalization, create_train_state
+    from dispgns.training import BatchStream, compute_normalization, create_train_state
     from dispgns.training.checkpoint import (
         CONFIG_FILE,
         LOG_FILE,
@@ -294,7 +293,8 @@ def run(args: argparse.Namespace) -> int:
         stream = BatchStream.for_training(train_trajectories, model_config, train_config)
     except ValueError as error:
         raise CLIError(f"{Path(args.data) / 'train.h5'}: {error}") from None
-    validator = Validator(valid, model_config, train_config) if valid else None
+    options = network_options(args, model_config)
+    validator = Validator(valid, model_config, train_config, compiler_options=options) if valid else None
 
     dataset_info = {
         "path": str(Path(args.data).absolute()),
@@ -347,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
                 checkpointer=checkpointer,
                 on_step=progress.step,
                 on_log=on_log,
+                compiler_options=options,
             )
     finally:
         progress.close()

@@ -1,4 +1,4 @@
-"""Datasets: the HDF5 format, generation presets, the authors' npz importer (and training examples)."""
+"""Datasets: the HDF5 format, generation presets, the authors' npz importer."""
 
 from dispgns.data.format import (
     FORMAT_VERSION,
@@ -50,5 +50,3 @@ __all__ = [
     "import_authors_npz",
     "read_authors_npz",
 ]
-
-# Training examples (windowing, padding) live in dispgns.data.examples.

@@ -27,21 +27,19 @@ the trajectory and field, and the expected value.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
 import os
-import shutil
-import tempfile
-import uuid
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
 
+from dispgns import files
+from dispgns.files import atomic_path, write_atomic
 from dispgns.physics import PhysicsConfig
 
 FORMAT_VERSION = 1
@@ -499,23 +497,6 @@ def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-# ----------------------------------------------------------------------------- atomic writes
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _temporary_path(target: Path) -> Path:
-    fd, name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    os.close(fd)
-    # mkstemp makes the file private (0600); the final file gets the usual umask permissions.
-    os.chmod(name, 0o666 & ~_umask())
-    return Path(name)
-
-
 def _json_value(value):
     """HDF5 attributes come back as numpy values; make them plain Python for ``attrs``."""
     if isinstance(value, bytes):
@@ -563,28 +544,22 @@ def write_split(
             box_half_size=box_half_size,
             predicted=predicted,
         )
-    temporary = _temporary_path(path)
-    try:
-        with h5py.File(temporary, "w") as file:
-            file.attrs["format_version"] = FORMAT_VERSION
-            if predicted:
-                file.attrs["predicted"] = True
-            for index, trajectory in enumerate(trajectories):
-                group = file.create_group(trajectory_name(index))
-                group.create_dataset("position", data=trajectory.position)
-                group.create_dataset("radius", data=trajectory.radius)
-                group.create_dataset("particle_type", data=trajectory.particle_type)
-                if trajectory.has_initial_state:
-                    for name in _INITIAL_FIELDS:
-                        group.create_dataset(name, data=getattr(trajectory, name))
-                for key, value in trajectory.attrs.items():
-                    # HDF5 has no null: absent attributes read back as absent.
-                    if value is not None:
-                        group.attrs[key] = value
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
+        file.attrs["format_version"] = FORMAT_VERSION
+        if predicted:
+            file.attrs["predicted"] = True
+        for index, trajectory in enumerate(trajectories):
+            group = file.create_group(trajectory_name(index))
+            group.create_dataset("position", data=trajectory.position)
+            group.create_dataset("radius", data=trajectory.radius)
+            group.create_dataset("particle_type", data=trajectory.particle_type)
+            if trajectory.has_initial_state:
+                for name in _INITIAL_FIELDS:
+                    group.create_dataset(name, data=getattr(trajectory, name))
+            for key, value in trajectory.attrs.items():
+                # HDF5 has no null: absent attributes read back as absent.
+                if value is not None:
+                    group.attrs[key] = value
     return path
 
 
@@ -592,89 +567,12 @@ def write_metadata(directory: str | os.PathLike, metadata: DatasetMetadata) -> P
     """Write ``metadata.json`` into ``directory`` atomically; returns its path."""
     path = Path(directory) / METADATA_FILE
     metadata.validate()
-    text = json.dumps(metadata.to_dict(), indent=2) + "\n"
-    temporary = _temporary_path(path)
-    try:
-        temporary.write_text(text)
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomic(path, json.dumps(metadata.to_dict(), indent=2) + "\n")
 
 
-def _check_target(out_dir: Path, overwrite: bool, marker: str = METADATA_FILE, kind: str = "dataset") -> None:
-    if out_dir.exists() or out_dir.is_symlink():
-        if not out_dir.is_dir():
-            raise FileExistsError(f"{out_dir} exists and is not a directory")
-        if any(out_dir.iterdir()):
-            if not overwrite:
-                raise FileExistsError(
-                    f"{out_dir} exists and is not empty; choose another directory or "
-                    f"allow overwriting it (overwrite=True, --overwrite)"
-                )
-            if not (out_dir / marker).is_file():
-                raise FileExistsError(f"refusing to overwrite {out_dir}: it is not a dispgns {kind} (no {marker})")
-
-
-def _move_into_place(staging: Path, out_dir: Path) -> None:
-    """Rename the finished ``staging`` directory to ``out_dir`` (replacing an old dataset)."""
-    if out_dir.is_dir() and not any(out_dir.iterdir()):
-        out_dir.rmdir()
-    if not out_dir.exists():
-        os.replace(staging, out_dir)
-        return
-    old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
-    os.replace(out_dir, old)
-    try:
-        os.replace(staging, out_dir)
-    except BaseException:
-        os.replace(old, out_dir)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def staged_directory(
-    out_dir: str | os.PathLike, *, overwrite: bool = False, marker: str = METADATA_FILE, kind: str = "dataset"
-) -> Iterator[Path]:
-    """Build an output directory (by default a dataset) atomically.
-
-    Yields a fresh temporary directory beside ``out_dir`` (same file system);
-    when the block finishes it is renamed to ``out_dir``, and when the block
-    raises it is removed together with any parent directories created for it.
-
-    ``out_dir`` may be missing or empty; a non-empty one is replaced only with
-    ``overwrite`` and only if it holds a dispgns ``kind`` (its ``marker``
-    file, ``metadata.json`` for a dataset), and only once the new one is
-    complete.
-
-    Raises:
-      FileExistsError: ``out_dir`` holds something that may not be replaced.
-      OSError: the parent directory cannot be written.
-    """
-    out_dir = Path(out_dir).absolute()
-    _check_target(out_dir, overwrite, marker, kind)
-    created = []
-    for parent in reversed(out_dir.parents):
-        if not parent.exists():
-            parent.mkdir()
-            created.append(parent)
-    try:
-        staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
-        try:
-            # mkdtemp makes the directory private (0700); the dataset gets the usual umask permissions.
-            os.chmod(staging, 0o777 & ~_umask())
-            yield staging
-            _move_into_place(staging, out_dir)
-        finally:
-            if staging.exists():
-                shutil.rmtree(staging, ignore_errors=True)
-    except BaseException:
-        for parent in reversed(created):
-            with contextlib.suppress(OSError):
-                parent.rmdir()
-        raise
+def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False):
+    """:func:`dispgns.files.staged_directory` for a dataset (``metadata.json`` marks one)."""
+    return files.staged_directory(out_dir, overwrite=overwrite, marker=METADATA_FILE, kind="dataset")
 
 
 # ----------------------------------------------------------------------------- reading

@@ -27,7 +27,7 @@ import math
 import os
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -52,6 +52,7 @@ from dispgns.physics import (
     sample_initial_state,
     simulate_batch,
 )
+from dispgns.tuning import thresholds
 
 SPLIT_IDS = {"train": 0, "valid": 1, "test": 2, "test_unseen": 3}
 KEY_DERIVATION = "fold_in(fold_in(jax.random.PRNGKey(seed), split_ids[split]), index)"
@@ -387,9 +388,9 @@ _SECONDS_PER_COMPILE = 2.5
 # Charged once per group beyond its own lane's time, so that concurrency is
 # only used when it saves real time (compilations compete for the cores).
 _SECONDS_PER_GROUP = 0.5
-# Groups simulated at the same time, one thread each. XLA on CPU spreads one
-# computation over cores only partly; two concurrent batches keep two cores
-# busy (measured 1.3-1.5x faster than one batch on this 2-core machine).
+# The plan assumes two groups run at the same time. It is a fixed constant,
+# not the machine's thread count (dispgns.tuning.Thresholds.generation_threads),
+# so that the grouping, and with it the data, never depends on the machine.
 LANES = 2
 
 
@@ -494,7 +495,13 @@ class _Cancelled(Exception):
 
 
 def _simulate_groups(
-    groups: list[list[int]], states: Sequence[InitialState], spec: DatasetSpec, dtype, report: ProgressFn, lanes: int
+    groups: list[list[int]],
+    states: Sequence[InitialState],
+    spec: DatasetSpec,
+    dtype,
+    report: ProgressFn,
+    lanes: int,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> list[np.ndarray]:
     """Simulate every group (concurrently, up to ``lanes`` at a time); positions per trajectory in m."""
     counts = [int(s.position.shape[0]) for s in states]
@@ -542,6 +549,7 @@ def _simulate_groups(
                 n_frames=spec.n_frames,
                 save_every=spec.save_every,
                 progress=on_frames,
+                compiler_options=compiler_options,
             )
         )
         for row, i in enumerate(members):
@@ -580,12 +588,14 @@ def generate_dataset(
     overwrite: bool = False,
     batch_size: int | None = None,
     progress: ProgressFn | None = None,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> DatasetMetadata:
     """Generate the dataset ``spec`` describes into ``out_dir``; deterministic for a seed.
 
     Initial states are drawn for every trajectory (one compilation), then the
     trajectories are simulated in groups of similar particle count chosen by
-    :func:`plan_batches`, up to :data:`LANES` groups at once in threads, and
+    :func:`plan_batches`, up to ``dispgns.tuning.thresholds().generation_threads``
+    groups at once in threads, and
     the dataset is written to a staging directory that is renamed into place.
     The same seed, spec and ``batch_size`` give the same files (on the same
     machine and software: the float32 dynamics is chaotic, so a different
@@ -603,6 +613,9 @@ def generate_dataset(
         The grouping is chosen by :func:`plan_batches`; the value is recorded
         in the metadata.
       progress: optional ``progress(stage, done, total)`` callback.
+      compiler_options: XLA options for the physics (e.g.
+        :func:`dispgns.tuning.physics_compiler_options`; float32 data then
+        differ from data generated without them in the last bits).
 
     Returns:
       The metadata written beside the split files.
@@ -645,7 +658,8 @@ def generate_dataset(
         )
         counts = [int(s.position.shape[0]) for s in states]
         groups = plan_batches(counts, spec.n_frames * spec.save_every, batch_size=batch_size)
-        positions = _simulate_groups(groups, states, spec, dtype, report, LANES)
+        threads = thresholds().generation_threads
+        positions = _simulate_groups(groups, states, spec, dtype, report, threads, compiler_options)
 
         trajectories: dict[str, list[Trajectory]] = {split: [] for split in spec.splits}
         for i, (split, index, radii) in enumerate(items):

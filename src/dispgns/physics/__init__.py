@@ -10,11 +10,14 @@ from dispgns.physics.initial import (
     sample_initial_state,
 )
 from dispgns.physics.integrate import (
+    PhysicsCapacity,
     SimState,
+    SimulatedFrames,
     euler_integrator,
     neighbor_fn_for,
     simulate,
     simulate_batch,
+    simulate_scan,
     update_neighbors,
 )
 from dispgns.physics.walls import WallResult, resolve_walls
@@ -22,12 +25,15 @@ from dispgns.physics.walls import WallResult, resolve_walls
 __all__ = [
     "PhysicsConfig",
     "SimState",
+    "SimulatedFrames",
+    "PhysicsCapacity",
     "InitialState",
     "PlacementError",
     "WallResult",
     "euler_integrator",
     "simulate",
     "simulate_batch",
+    "simulate_scan",
     "sample_initial_state",
     "place_particles",
     "particle_count_range",

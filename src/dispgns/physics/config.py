@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
+from dispgns._config import check_fields, config_from_mapping
+
+__all__ = ["PhysicsConfig"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,29 +62,22 @@ class PhysicsConfig:
     neighbor_skin: float = 2e-3
 
     def __post_init__(self):
-        positive = ("thickness", "density", "box_half_size", "dt")
-        nonnegative = ("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff")
-        for name in positive + nonnegative + ("restitution", "neighbor_skin", "cutoff"):
-            value = getattr(self, name)
+        for field in dataclasses.fields(self):
             # numpy scalars become Python floats: the config stays hashable and JSON-serialisable.
-            if isinstance(value, (np.floating, np.integer)):
-                object.__setattr__(self, name, float(value))
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"PhysicsConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in nonnegative:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"PhysicsConfig.{name} must be a finite number >= 0, got {value!r}")
+            value = getattr(self, field.name)
+            if isinstance(value, np.floating) or (isinstance(value, np.integer) and field.name != "lj_exponent"):
+                object.__setattr__(self, field.name, float(value))
+        check_fields(
+            self,
+            integers={"lj_exponent": 1},
+            positive=("thickness", "density", "box_half_size", "dt"),
+            nonnegative=("fluid_density", "gravity", "drag", "well_depth_coeff", "min_distance_coeff", "neighbor_skin"),
+        )
         if not (0.0 < self.restitution <= 1.0):
             raise ValueError(f"PhysicsConfig.restitution must lie in (0, 1], got {self.restitution!r}")
-        if int(self.lj_exponent) != self.lj_exponent or self.lj_exponent < 1:
-            raise ValueError(f"PhysicsConfig.lj_exponent must be a positive integer, got {self.lj_exponent!r}")
-        if self.cutoff is not None and not (math.isfinite(self.cutoff) and self.cutoff > 0):
+        cutoff = self.cutoff
+        if cutoff is not None and not (isinstance(cutoff, int | float) and math.isfinite(cutoff) and cutoff > 0):
             raise ValueError(f"PhysicsConfig.cutoff must be None or a distance > 0 in m, got {self.cutoff!r}")
-        if not (self.neighbor_skin >= 0):
-            raise ValueError(f"PhysicsConfig.neighbor_skin must be >= 0 m, got {self.neighbor_skin!r}")
 
     def settling_speed(self, radius: float) -> float:
         """Terminal speed (m/s) of an isolated disk of ``radius`` m (D = 2)."""
@@ -89,10 +87,6 @@ class PhysicsConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> PhysicsConfig:
-        """Build a config from a mapping; unknown keys are an error."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown PhysicsConfig field(s) {unknown}; expected a subset of {sorted(known)}")
-        return cls(**values)
+    def from_dict(cls, values: Mapping[str, Any]) -> PhysicsConfig:
+        """Build a config from a mapping (numbers may be given as text); unknown keys are an error."""
+        return config_from_mapping(cls, values)

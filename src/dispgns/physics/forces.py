@@ -12,11 +12,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from dispgns.physics.config import PhysicsConfig
-
-# Up to this many neighbour slots (Q x M), neighbour forces loop over slots;
-# above, they use (Q, M) arrays. Measured on a 2-core x86 CPU: the loop is
-# ~1.5x faster at 2,000 x 22 slots, even at 20,000 x 22, slower at 50,000 x 22.
-_SLOT_LOOP_MAX_PAIRS = 2**16
+from dispgns.tuning import thresholds
 
 
 def particle_volume(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp.ndarray:
@@ -173,7 +169,8 @@ def neighbor_force(
     query_row = table[jnp.minimum(query_index, n)]
     query_valid = query_row[:, dim + 1] > 0
     a_i = query_row[:, dim]
-    if others.size <= _SLOT_LOOP_MAX_PAIRS:
+    # Loop over slots up to a machine-dependent size, (Q, M) arrays above (dispgns.tuning.Thresholds).
+    if others.size <= thresholds().slot_loop_max_pairs:
         # Small lists: one slot at a time on (Q,) vectors. XLA fuses each
         # slot's gather and arithmetic, which beats (Q, M) arrays while the
         # data sits in cache; for large Q x M the (Q, M) form below is faster.

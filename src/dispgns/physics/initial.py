@@ -12,7 +12,6 @@ import numpy as np
 from jax import lax
 
 from dispgns.physics.config import PhysicsConfig
-from dispgns.runtime import physics_jit
 
 
 class InitialState(NamedTuple):
@@ -188,4 +187,4 @@ def sample_initial_state(
     return InitialState(position, velocity, radius, float(start_height))
 
 
-_place_jit = physics_jit(_place, static_argnums=(3, 4, 5, 6, 7))
+_place_jit = jax.jit(_place, static_argnums=(3, 4, 5, 6, 7))

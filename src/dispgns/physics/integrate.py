@@ -1,25 +1,29 @@
-"""Explicit-Euler integration of the suspension: ``init``/``step`` and drivers.
+"""Explicit-Euler integration of the suspension: the pure ``init``/``step`` pair, a pure scan, host drivers.
 
 The state is a frozen pytree (:class:`SimState`); the step is a pure function
 of it, so it can be jitted, vmapped over trajectories, differentiated and
 scanned. Capacities (colliding particles evaluated per step, neighbour-list
-size) are static; overflowing one is detected, never silently ignored:
+sizes) are static; overflowing one is a flag, never silently ignored:
 
-* :func:`simulate` and :func:`simulate_batch` called with concrete arrays run
-  the trajectory in chunks, check the overflow flags after each chunk, grow
-  the capacity outside ``jit`` and recompute the chunk;
-* called under a JAX transformation (``jit``, ``vmap``, ``grad``) they use the
-  exact all-particle collision path, which cannot overflow.
+* pure: :func:`euler_integrator` (``init_fn, step_fn``) and
+  :func:`simulate_scan` (all frames as one ``lax.scan``, overflow flags
+  returned, frames after an overflow NaN);
+* host: :func:`simulate` and :func:`simulate_batch` take concrete arrays, run
+  the trajectory in compiled chunks with neighbour lists, and grow a
+  capacity and redo the chunk after an overflow
+  (:func:`dispgns.capacity.drive`).
 
 Units are SI: positions in m, velocities in m/s, radii in m, time in s.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -28,10 +32,24 @@ from jax import lax
 from jax_md import dataclasses as md_dataclasses
 from jax_md import partition
 
+from dispgns.arrays import host_array
+from dispgns.capacity import Attempt, coarse_ladder, drive, ladder
 from dispgns.physics.config import PhysicsConfig
 from dispgns.physics.forces import external_force, interaction_force, neighbor_force, neighbor_table, particle_mass
 from dispgns.physics.walls import resolve_walls
-from dispgns.runtime import physics_jit
+from dispgns.tuning import jitted
+
+__all__ = [
+    "PhysicsCapacity",
+    "SimState",
+    "SimulatedFrames",
+    "euler_integrator",
+    "neighbor_fn_for",
+    "simulate",
+    "simulate_batch",
+    "simulate_scan",
+    "update_neighbors",
+]
 
 
 @md_dataclasses.dataclass
@@ -309,7 +327,7 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
         ``did_buffer_overflow`` afterwards. Without one, pairs are still cut
         off at ``config.cutoff`` but found by the all-pairs ``N x N`` path.
 
-    On the CPU, ``jax.jit(loop, compiler_options=dispgns.physics_compiler_options())``
+    On the CPU, ``jax.jit(loop, compiler_options=dispgns.tuning.physics_compiler_options())``
     compiles a loop over ``step_fn`` as :func:`simulate` compiles its own
     (512-bit vector loops, ~1.6x faster on AVX-512 machines). JAX accepts
     the options on the outermost jit only: ``jax.jit(jax.grad(loss), ...)``,
@@ -391,9 +409,9 @@ def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = 
 
 
 def _advance_frames(
-    state: SimState, neighbors, config: PhysicsConfig, n_frames: int, save_every: int, collision_capacity, batched: bool
+    state: SimState, neighbors, *, config: PhysicsConfig, n_frames: int, save_every: int, collision_capacity, batched
 ):
-    """Run ``n_frames * save_every`` steps of one state or a stacked batch of states.
+    """Run ``n_frames * save_every`` steps of one state or a stacked batch of states (pure).
 
     Returns ``((state, neighbors), (xs, vs, overflow))`` with frames stacked
     on axis 0; ``overflow`` says whether the collision capacity had been
@@ -405,7 +423,13 @@ def _advance_frames(
         squeeze = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[0], tree)
         expand = lambda tree: jax.tree_util.tree_map(lambda leaf: leaf[None], tree)
         (state, neighbors), (xs, vs, flags) = _advance_frames(
-            squeeze(state), squeeze(neighbors), config, n_frames, save_every, collision_capacity, False
+            squeeze(state),
+            squeeze(neighbors),
+            config=config,
+            n_frames=n_frames,
+            save_every=save_every,
+            collision_capacity=collision_capacity,
+            batched=False,
         )
         return (expand(state), expand(neighbors)), (xs[:, None], vs[:, None], flags[:, None])
     _, step_fn = euler_integrator(config, collision_capacity=collision_capacity)
@@ -424,33 +448,90 @@ def _advance_frames(
     return lax.scan(frame, (state, neighbors), None, length=n_frames)
 
 
-_advance_frames_jit = physics_jit(_advance_frames, static_argnums=(2, 3, 4, 5, 6))
+class SimulatedFrames(NamedTuple):
+    """Frames of a simulation (a pytree).
+
+    Attributes:
+      position: ``(n_frames, N, D)`` in m (frame 0 is the initial state).
+      velocity: ``(n_frames, N, D)`` in m/s.
+      overflow: ``(n_frames,)`` bool; True from the first frame whose steps
+        exceeded the collision capacity on (those frames are NaN).
+    """
+
+    position: jnp.ndarray
+    velocity: jnp.ndarray
+    overflow: jnp.ndarray
 
 
-def _is_traced(*arrays) -> bool:
-    return any(isinstance(a, jax.core.Tracer) for a in arrays)
+def simulate_scan(
+    x0,
+    v0,
+    radius,
+    config: PhysicsConfig = PhysicsConfig(),
+    *,
+    n_frames: int,
+    save_every: int = 15,
+    mask=None,
+    collision_capacity: int | None = None,
+) -> SimulatedFrames:
+    """Simulate one trajectory as one ``lax.scan`` (pure: ``jit``, ``vmap``, ``grad``).
+
+    Pairs come from the all-pairs path (a finite ``config.cutoff`` is applied
+    on it); :func:`simulate` is the host convenience with neighbour lists.
+
+    Args:
+      x0: ``(N, D)`` initial centres in m. v0: ``(N, D)`` in m/s. radius: ``(N,)`` in m.
+      config: static physics parameters.
+      n_frames: static; frames returned (frame 0 is ``x0``), ``save_every``
+        Euler steps apart (static).
+      mask: optional ``(N,)`` bool, ``False`` for padding particles.
+      collision_capacity: static; colliding particles evaluated per step
+        (``None``: all, exact, it cannot overflow); a small number is cheaper
+        and sets the overflow flags when exceeded.
+
+    Returns:
+      :class:`SimulatedFrames`, in the dtype of ``x0``.
+    """
+    x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=False)
+    _check_frames(n_frames, save_every)
+    _check_collision_capacity(collision_capacity, allow_auto=False)
+    init_fn, _ = euler_integrator(config, collision_capacity=collision_capacity)
+    _, (xs, vs, flags) = _advance_frames(
+        init_fn(x0, v0, radius, mask),
+        None,
+        config=config,
+        n_frames=n_frames - 1,
+        save_every=save_every,
+        collision_capacity=collision_capacity,
+        batched=False,
+    )
+    # A pure run cannot grow its capacity: every frame from the first overflowing one on is NaN.
+    poison = jnp.where(flags, jnp.nan, 0.0).astype(xs.dtype)[:, None, None]
+    return SimulatedFrames(
+        position=_stack_frames(x0, [xs + poison], 0),
+        velocity=_stack_frames(v0, [vs + poison], 0),
+        overflow=jnp.concatenate([jnp.zeros((1,), bool), flags]),
+    )
 
 
-def _neighbor_overflow(neighbors) -> bool:
-    if neighbors is None:
-        return False
-    return bool(np.any(np.asarray(neighbors.did_buffer_overflow)))
+def _check_frames(n_frames, save_every):
+    for name, value in (("n_frames", n_frames), ("save_every", save_every)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
 
-def _check_collision_capacity(collision_capacity):
-    # Growth doubles the capacity, so an int must start at 1 or more.
-    if collision_capacity is None or isinstance(collision_capacity, str) and collision_capacity == "auto":
+def _check_collision_capacity(collision_capacity, *, allow_auto: bool = True):
+    if collision_capacity is None or (
+        allow_auto and isinstance(collision_capacity, str) and collision_capacity == "auto"
+    ):
         return
     if (
         isinstance(collision_capacity, bool)
-        or not isinstance(collision_capacity, (int, np.integer))
+        or not isinstance(collision_capacity, int | np.integer)
         or collision_capacity < 1
     ):
-        raise ValueError(f'collision_capacity must be "auto", None or an integer >= 1, got {collision_capacity!r}')
-
-
-def _default_collision_capacity(n: int) -> int:
-    return int(min(n, max(16, math.ceil(n / 8))))
+        allowed = '"auto", None' if allow_auto else "None"
+        raise ValueError(f"collision_capacity must be {allowed} or an integer >= 1, got {collision_capacity!r}")
 
 
 def _stack_frames(first: jnp.ndarray, chunks: list, axis: int) -> jnp.ndarray:
@@ -490,59 +571,40 @@ def simulate(
     return_velocity: bool = False,
     collision_capacity: int | None | str = "auto",
     chunk_frames: int = 50,
+    compiler_options: Mapping[str, Any] | None = None,
 ):
-    """Simulate one trajectory and return its saved frames.
+    """Simulate one trajectory and return its saved frames (host; :func:`simulate_scan` is the pure core).
+
+    The frames are computed in compiled chunks; after a chunk that overflowed
+    a capacity (colliding particles, neighbour list) the capacity grows and
+    the chunk is redone, so the result is that of unlimited capacities.
 
     Args:
-      x0: ``(N, D)`` initial centres in m, inside ``[-L + a_i, L - a_i]``.
+      x0: concrete ``(N, D)`` initial centres in m, inside ``[-L + a_i, L - a_i]``.
       v0: ``(N, D)`` initial velocities in m/s.
       radius: ``(N,)`` radii in m.
-      config: physics parameters (static).
-      n_frames: static; frames returned, at Euler steps
-        ``0, save_every, ..., (n_frames - 1) * save_every`` (frame 0 is ``x0``).
-      save_every: static; Euler steps between frames (15 in the paper: 1.5 ms).
+      config: physics parameters.
+      n_frames: frames returned, at Euler steps ``0, save_every, ...,
+        (n_frames - 1) * save_every`` (frame 0 is ``x0``).
+      save_every: Euler steps between frames (15 in the paper: 1.5 ms).
       mask: optional ``(N,)`` bool, ``False`` for padding particles; their
         output rows are meaningless and they never affect real particles.
       return_velocity: also return the velocities at the saved frames.
-      collision_capacity: ``"auto"`` (a small capacity, grown on overflow
-        when the inputs are concrete, exact all-particle path under a JAX
-        transformation), ``None`` (always the exact all-particle path) or an
-        int >= 1 (the starting capacity; under a transformation it cannot
-        grow, and every frame from the first one that overflowed it on is
-        NaN).
+      collision_capacity: ``"auto"`` (a small capacity, grown on overflow),
+        ``None`` (every particle, exact, cannot overflow) or an int >= 1 (the
+        starting capacity, grown on overflow).
       chunk_frames: frames per compiled chunk between overflow checks.
+      compiler_options: XLA options for the chunks (e.g.
+        :func:`dispgns.tuning.physics_compiler_options`).
 
     Returns:
       positions ``(n_frames, N, D)`` in m (and velocities ``(n_frames, N, D)``
       in m/s if ``return_velocity``), in the dtype of ``x0``: float64 when
       ``x0`` is float64 and ``jax_enable_x64`` is on, float32 otherwise.
-
-    Called inside the caller's ``jax.jit``, it is compiled with that jit's
-    options: pass ``compiler_options=dispgns.physics_compiler_options()`` to
-    the outermost jit for the speed of a direct call on the CPU (JAX accepts
-    them only there: ``jax.jit(jax.grad(loss), ...)``, not ``jax.grad`` of a
-    jit with options).
     """
-    x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=False)
+    x0, v0, radius, mask = _host_inputs(x0, v0, radius, mask, batched=False, pure="dispgns.simulate_scan")
+    _check_frames(n_frames, save_every)
     _check_collision_capacity(collision_capacity)
-    if n_frames < 1 or save_every < 1:
-        raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
-    n, dim = x0.shape
-    if _is_traced(x0, v0, radius, mask):
-        # Neighbour lists cannot be allocated under a transformation: a finite
-        # cutoff is then applied on the exact all-pairs path.
-        capacity = None if collision_capacity == "auto" else collision_capacity
-        init_fn, _ = euler_integrator(config, collision_capacity=capacity)
-        state = init_fn(x0, v0, radius, mask)
-        _, (xs, vs, flags) = _advance_frames(state, None, config, n_frames - 1, save_every, capacity, False)
-        # A traced run cannot grow capacity: poison every frame from the first
-        # overflowing one on rather than return wrong ones.
-        poison = jnp.where(flags, jnp.nan, 0.0).astype(xs.dtype)[:, None, None]
-        xs, vs = xs + poison, vs + poison
-        positions = _stack_frames(x0, [xs], 0)
-        velocities = _stack_frames(v0, [vs], 0)
-        return (positions, velocities) if return_velocity else positions
-
     xs, vs = _drive(
         x0[None],
         v0[None],
@@ -553,10 +615,9 @@ def simulate(
         save_every,
         collision_capacity,
         chunk_frames,
-        batched=False,
+        compiler_options,
     )
-    positions, velocities = xs[0], vs[0]
-    return (positions, velocities) if return_velocity else positions
+    return (xs[0], vs[0]) if return_velocity else xs[0]
 
 
 def simulate_batch(
@@ -571,32 +632,29 @@ def simulate_batch(
     return_velocity: bool = False,
     collision_capacity: int | None | str = "auto",
     chunk_frames: int = 50,
+    compiler_options: Mapping[str, Any] | None = None,
     progress: Callable[[int], None] | None = None,
 ):
-    """Simulate B trajectories with different particle counts in one vmapped call.
+    """Simulate B trajectories with different particle counts in one vmapped call (host).
 
     Trajectories are padded to a common ``N``; padding particles
     (``mask == False``) never touch real ones, so each real trajectory equals
-    its own :func:`simulate` run up to float summation order.
+    its own :func:`simulate` run up to float summation order. Under ``jit``,
+    ``jax.vmap(simulate_scan)`` is the pure equivalent.
 
     Args:
-      x0, v0: ``(B, N, D)`` initial positions (m) and velocities (m/s).
+      x0, v0: concrete ``(B, N, D)`` initial positions (m) and velocities (m/s).
       radius: ``(B, N)`` radii in m. mask: ``(B, N)`` bool.
       progress: optional callable receiving the number of frames completed
         after each chunk (for progress bars).
-      Other arguments as in :func:`simulate`. Must be called with concrete
-      arrays (it checks overflow between chunks).
+      Other arguments as in :func:`simulate`.
 
     Returns:
       positions ``(B, n_frames, N, D)`` in m (and velocities if asked).
     """
-    x0, v0, radius, mask = _check_inputs(x0, v0, radius, mask, batched=True)
+    x0, v0, radius, mask = _host_inputs(x0, v0, radius, mask, batched=True, pure="jax.vmap(dispgns.simulate_scan)")
+    _check_frames(n_frames, save_every)
     _check_collision_capacity(collision_capacity)
-    if _is_traced(x0, v0, radius, mask):
-        raise ValueError(
-            "simulate_batch checks overflow between chunks and needs concrete arrays; "
-            "under jit, jax.vmap(simulate) is the exact alternative"
-        )
     xs, vs = _drive(
         x0,
         v0,
@@ -607,66 +665,156 @@ def simulate_batch(
         save_every,
         collision_capacity,
         chunk_frames,
-        batched=True,
+        compiler_options,
         progress=progress,
     )
     return (xs, vs) if return_velocity else xs
 
 
-def _allocate_neighbors(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfig, extra_capacity: int):
-    """One neighbour list per trajectory with a common capacity, stacked on axis 0."""
+def _host_inputs(x0, v0, radius, mask, *, batched: bool, pure: str):
+    """Concrete inputs of a host driver, as jax arrays (a traced input raises and names the pure core)."""
+    arrays = [host_array(value, name, pure=pure) for value, name in ((x0, "x0"), (v0, "v0"), (radius, "radius"))]
+    if mask is not None:
+        mask = host_array(mask, "mask", pure=pure)
+    # jnp.asarray keeps float64 when x64 is on (numpy float64 inputs otherwise become float32).
+    return _check_inputs(*(jnp.asarray(a) for a in arrays), mask, batched=batched)
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsCapacity:
+    """Static capacities of a chunk of physics steps (hashable: a jit cache key).
+
+    Attributes:
+      collisions: colliding particles evaluated per step (``None``: all of them).
+      cell: particles per cell of the neighbour cell list (``None``: no neighbour list).
+      neighbors: neighbours per particle in the list (``None``: no neighbour list).
+    """
+
+    collisions: int | None
+    cell: int | None = None
+    neighbors: int | None = None
+
+
+class _Run(NamedTuple):
+    """The driver's state: the simulation, its neighbour lists, and what overflowed in the last attempt."""
+
+    state: SimState
+    neighbors: Any
+    collisions_overflowed: bool = False
+    neighbors_overflowed: bool = False
+
+
+def _neighbor_capacity(position, mask, config: PhysicsConfig, grown_from: PhysicsCapacity | None = None):
+    """``(cell, neighbors)`` capacities, on the ladder, for the lists of ``position`` ``(B, N, D)`` (m, host).
+
+    jax-md's allocation sizes them from the occupancy it sees, times 1.25;
+    after an overflow (``grown_from``) they also grow by at least 25 %.
+    """
     neighbor_fn = neighbor_fn_for(config, position.shape[-1])
-    shifted = [_park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])]
-    lists = [neighbor_fn.allocate(x, extra_capacity=extra_capacity) for x in shifted]
-    capacity = lambda nbrs: (nbrs.cell_list_capacity, nbrs.max_occupancy)
-    common = tuple(max(values) for values in zip(*map(capacity, lists)))
-    template = md_dataclasses.replace(lists[0], cell_list_capacity=common[0], max_occupancy=common[1])
-    # Only lists allocated below the common capacities are rebuilt.
-    lists = [nbrs if capacity(nbrs) == common else neighbor_fn.update(x, template) for x, nbrs in zip(shifted, lists)]
+    lists = [neighbor_fn.allocate(x) for x in _shifted(position, mask, config)]
+    cell = coarse_ladder(max(nbrs.cell_list_capacity for nbrs in lists))
+    neighbors = ladder(max(nbrs.max_occupancy for nbrs in lists))
+    if grown_from is not None:
+        cell = coarse_ladder(max(cell, math.ceil(1.25 * grown_from.cell)))
+        neighbors = ladder(max(neighbors, math.ceil(1.25 * grown_from.neighbors)))
+    return cell, max(1, min(neighbors, position.shape[1] - 1))
+
+
+def _neighbor_lists(position, mask, config: PhysicsConfig, capacity: PhysicsCapacity):
+    """Neighbour lists of ``position`` ``(B, N, D)`` (m) at ``capacity``'s static sizes, stacked on axis 0."""
+    neighbor_fn = neighbor_fn_for(config, position.shape[-1])
+    shifted = _shifted(position, mask, config)
+    template = md_dataclasses.replace(
+        neighbor_fn.allocate(shifted[0]), cell_list_capacity=capacity.cell, max_occupancy=capacity.neighbors
+    )
+    lists = [neighbor_fn.update(x, template) for x in shifted]
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *lists)
 
 
+def _shifted(position, mask, config: PhysicsConfig) -> list:
+    """Each trajectory's positions in the cell-list frame ``[0, 2L]^D``, padding parked outside."""
+    return [_park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])]
+
+
 def _drive(
-    x0, v0, radius, mask, config, n_frames, save_every, collision_capacity, chunk_frames, batched: bool, progress=None
+    x0,
+    v0,
+    radius,
+    mask,
+    config,
+    n_frames,
+    save_every,
+    collision_capacity,
+    chunk_frames,
+    compiler_options,
+    progress=None,
 ):
-    """Chunked, overflow-checked run of B trajectories; returns (B, n_frames, N, D) arrays."""
-    if n_frames < 1 or save_every < 1:
-        raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    """Chunked, overflow-checked run of B trajectories with :func:`dispgns.capacity.drive`.
+
+    Returns ``(B, n_frames, N, D)`` positions and velocities. A chunk that
+    overflowed is redone from its start with the grown capacity.
+    """
     n = x0.shape[1]
     if collision_capacity == "auto":
-        capacity = _default_collision_capacity(n)
+        collisions = min(n, ladder(max(16, math.ceil(n / 8))))
     else:
-        capacity = collision_capacity
-    neighbor_extra = 0
-    neighbors = _allocate_neighbors(x0, mask, config, neighbor_extra) if config.cutoff is not None else None
+        collisions = collision_capacity
+    capacity = PhysicsCapacity(collisions=collisions)
+    neighbors = None
+    if config.cutoff is not None:
+        cell, slots = _neighbor_capacity(x0, mask, config)
+        capacity = dataclasses.replace(capacity, cell=cell, neighbors=slots)
+        neighbors = _neighbor_lists(x0, mask, config, capacity)
     init_fn, _ = euler_integrator(config)
-    state = jax.vmap(init_fn)(x0, v0, radius, mask)
-    frames_x, frames_v = [], []
-    done = 0
+    start = _Run(jax.vmap(init_fn)(x0, v0, radius, mask), neighbors)
     # Every chunk has the same length (one compilation); the last one may run
     # past n_frames and its extra frames are dropped.
     length = max(1, min(chunk_frames, n_frames - 1))
-    while done < n_frames - 1:
-        (new_state, new_neighbors), (xs, vs, _) = _advance_frames_jit(
-            state, neighbors, config, length, save_every, capacity, True
+    advance = jitted(
+        _advance_frames,
+        compiler_options,
+        static_argnames=("config", "n_frames", "save_every", "collision_capacity", "batched"),
+    )
+
+    def attempt(run: _Run, capacity: PhysicsCapacity, remaining: int) -> Attempt:
+        neighbors = run.neighbors
+        if neighbors is not None and (neighbors.cell_list_capacity, neighbors.max_occupancy) != (
+            capacity.cell,
+            capacity.neighbors,
+        ):
+            neighbors = _neighbor_lists(run.state.position, mask, config, capacity)
+        (state, new_neighbors), (xs, vs, _) = advance(
+            run.state,
+            neighbors,
+            config=config,
+            n_frames=length,
+            save_every=save_every,
+            collision_capacity=capacity.collisions,
+            batched=True,
         )
-        grow_collisions = bool(np.any(np.asarray(new_state.overflow)))
-        grow_neighbors = _neighbor_overflow(new_neighbors)
-        if grow_collisions or grow_neighbors:
-            # Redo the chunk from its start with the larger capacity.
-            if grow_collisions:
-                capacity = min(n, 2 * capacity)
-            if grow_neighbors:
-                neighbor_extra = max(8, 2 * neighbor_extra)
-                neighbors = _allocate_neighbors(state.position, mask, config, neighbor_extra)
-            continue
-        state, neighbors = new_state, new_neighbors
-        keep = min(length, n_frames - 1 - done)
-        frames_x.append(jnp.swapaxes(xs[:keep], 0, 1))
-        frames_v.append(jnp.swapaxes(vs[:keep], 0, 1))
-        done += keep
-        if progress is not None:
-            progress(done)
-    positions = _stack_frames(x0, frames_x, 1)
-    velocities = _stack_frames(v0, frames_v, 1)
+        collided = bool(np.any(np.asarray(state.overflow)))
+        crowded = new_neighbors is not None and bool(np.any(np.asarray(new_neighbors.did_buffer_overflow)))
+        if collided or crowded:
+            return Attempt(
+                run._replace(neighbors=neighbors, collisions_overflowed=collided, neighbors_overflowed=crowded),
+                None,
+                0,
+                True,
+            )
+        keep = min(length, remaining)
+        frames = (jnp.swapaxes(xs[:keep], 0, 1), jnp.swapaxes(vs[:keep], 0, 1))
+        return Attempt(_Run(state, new_neighbors), frames, keep, False)
+
+    def grow(capacity: PhysicsCapacity, run: _Run) -> PhysicsCapacity:
+        if run.collisions_overflowed:
+            capacity = dataclasses.replace(capacity, collisions=min(n, ladder(2 * capacity.collisions)))
+        if run.neighbors_overflowed:
+            cell, slots = _neighbor_capacity(run.state.position, mask, config, grown_from=capacity)
+            capacity = dataclasses.replace(capacity, cell=cell, neighbors=slots)
+        return capacity
+
+    total = n_frames - 1
+    _, chunks, _ = drive(attempt, start, capacity, grow, total=total, progress=progress) if total else (None, [], None)
+    positions = _stack_frames(x0, [xs for xs, _ in chunks], 1)
+    velocities = _stack_frames(v0, [vs for _, vs in chunks], 1)
     return positions, velocities

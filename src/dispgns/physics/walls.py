@@ -200,18 +200,20 @@ def _collide(
         before = [w + t_contact * inv_mass * (o + f) for w, o, f in zip(start_velocity, other_forces, force_at_start)]
         reflected = [sqrt_restitution * jnp.where(flag, -b, b) for flag, b in zip(on_axis, before)]
 
-        def contact_force():
+        def contact_force(contact=contact, active=active):  # called within this iteration (lax.cond)
             return columns(force_at(jnp.stack(contact, axis=-1), jnp.where(active, index, n)))
 
         if event == 0:
             force_at_contact = contact_force()
         else:
             # Only corner crossings reach a second wall: usually none, so skip the force.
-            force_at_contact = lax.cond(jnp.any(active), contact_force, lambda: [jnp.zeros_like(c) for c in contact])
+            force_at_contact = lax.cond(
+                jnp.any(active), contact_force, lambda contact=contact: [jnp.zeros_like(c) for c in contact]
+            )
         after_v = [r + t_rest * inv_mass * (o + f) for r, o, f in zip(reflected, other_forces, force_at_contact)]
         after_x = [c + t_rest * r for c, r in zip(contact, reflected)]
 
-        keep = lambda new, old: [jnp.where(active, a, b) for a, b in zip(new, old)]
+        keep = lambda new, old, active=active: [jnp.where(active, a, b) for a, b in zip(new, old)]
         result_x, result_v = keep(after_x, result_x), keep(after_v, result_v)
         start, start_velocity = keep(contact, start), keep(reflected, start_velocity)
         force_at_start = keep(force_at_contact, force_at_start)

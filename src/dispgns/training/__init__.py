@@ -1,5 +1,6 @@
-"""Training: noise and targets, normalisation statistics, loss, the jitted step."""
+"""Training: batches of examples, noise and targets, normalisation statistics, loss, the step and the loop."""
 
+from dispgns.training.batches import Batch, BatchStream, example_index
 from dispgns.training.noise import random_walk_noise, target_acceleration
 from dispgns.training.normalization import compute_normalization, identity_normalization
 from dispgns.training.step import (
@@ -14,6 +15,9 @@ from dispgns.training.step import (
 )
 
 __all__ = [
+    "Batch",
+    "BatchStream",
+    "example_index",
     "random_walk_noise",
     "target_acceleration",
     "compute_normalization",

@@ -28,9 +28,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import signal
-import tempfile
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,6 +40,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization
 
+from dispgns.files import staged_directory, write_atomic
 from dispgns.model import ModelConfig, init_params
 from dispgns.training.step import TrainConfig, TrainState, create_train_state
 
@@ -62,24 +61,11 @@ class CheckpointError(ValueError):
 # ----------------------------------------------------------------------------- small file helpers
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` under a temporary name in the same directory, then rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as file:
-            file.write(data)
-        os.chmod(name, 0o644)
-        os.replace(name, path)
-    except BaseException:
-        Path(name).unlink(missing_ok=True)
-        raise
-
-
 def write_json(path: str | os.PathLike, values: Mapping[str, Any]) -> Path:
     """``values`` as indented JSON at ``path``, atomically."""
     path = Path(path)
-    _write_atomic(path, (json.dumps(values, indent=2, default=_json_default) + "\n").encode())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, json.dumps(values, indent=2, default=_json_default) + "\n")
     return path
 
 
@@ -135,7 +121,7 @@ class JsonlLog:
         """Drop records past ``step`` (a resumed run rewrites them), atomically."""
         kept = [r for r in self.read() if int(r.get("step", 0)) <= step]
         text = "".join(json.dumps(r, default=_json_default) + "\n" for r in kept)
-        _write_atomic(self.path, text.encode())
+        write_atomic(self.path, text)
 
 
 # ----------------------------------------------------------------------------- run configuration
@@ -333,29 +319,16 @@ def export_model(
     from dispgns import __version__
 
     directory = Path(directory).absolute()
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}.tmp-"))
-    try:
-        os.chmod(staging, 0o755)
-        host = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), jax.device_get(params))
+    host = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), jax.device_get(params))
+    info = {
+        "format_version": MODEL_FORMAT_VERSION,
+        "dispgns_version": __version__,
+        "model": model_config.to_dict(),
+        "record": dict(record or {}),
+    }
+    with staged_directory(directory, overwrite=True, marker=MODEL_FILE, kind="model") as staging:
         (staging / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(host)))
-        info = {
-            "format_version": MODEL_FORMAT_VERSION,
-            "dispgns_version": __version__,
-            "model": model_config.to_dict(),
-            "record": dict(record or {}),
-        }
         (staging / MODEL_FILE).write_text(json.dumps(info, indent=2, default=_json_default) + "\n")
-        if directory.exists():
-            old = directory.parent / f".{directory.name}.old-{os.getpid()}"
-            os.replace(directory, old)
-            os.replace(staging, directory)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(staging, directory)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
     return directory
 
 

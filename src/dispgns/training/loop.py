@@ -1,7 +1,7 @@
 """The training loop: steps, logging, validation and checkpoints around the pure :func:`train_step`.
 
 Determinism and resume. Step ``s`` (counting from 0) trains on batch ``s`` of
-the :class:`~dispgns.data.examples.BatchStream` (a pure function of the
+the :class:`~dispgns.training.batches.BatchStream` (a pure function of the
 data-order seed and ``s``) with the noise key ``fold_in(key, s)``. A run
 restored from a checkpoint at step ``s`` therefore continues exactly as the
 uninterrupted run would have (on the same machine and software).
@@ -14,8 +14,6 @@ for progress bars, ``on_log`` for log records) and saves through a
 from __future__ import annotations
 
 import dataclasses
-import functools
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -24,13 +22,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dispgns import graph as graph_lib
-from dispgns.data.examples import BatchStream
+from dispgns.arrays import stack_padded
+from dispgns.capacity import Attempt, drive
 from dispgns.metrics import per_frame_mse
 from dispgns.model import ModelConfig
-from dispgns.runtime import network_jit
-from dispgns.simulator import rollout
+from dispgns.simulator import fit_capacity, rollout_batch
+from dispgns.training.batches import BatchStream
 from dispgns.training.step import TrainConfig, TrainState, loss_fn, train_step_checked
+from dispgns.tuning import jitted
+
+__all__ = ["LoopResult", "Validator", "train"]
 
 
 class Validator:
@@ -51,8 +52,16 @@ class Validator:
       model_config, train_config: the run's configs.
     """
 
-    def __init__(self, trajectories: Sequence[Any], model_config: ModelConfig, train_config: TrainConfig):
+    def __init__(
+        self,
+        trajectories: Sequence[Any],
+        model_config: ModelConfig,
+        train_config: TrainConfig,
+        *,
+        compiler_options: Mapping[str, Any] | None = None,
+    ):
         self.model_config = model_config
+        self.compiler_options = compiler_options
         c = model_config.input_sequence_length
         self.clean_config = dataclasses.replace(train_config, noise_std=0.0, pushforward_steps=0)
         self.batch = None
@@ -68,61 +77,67 @@ class Validator:
             count = min(train_config.validation_examples, stream.num_examples)
             ids = np.unique(np.linspace(0, stream.num_examples - 1, count).round().astype(np.int64))
             self.batch = stream.make_batch(ids)
-        self.rollouts = []
         count = min(train_config.validation_trajectories, len(trajectories))
         chosen = [t for t in trajectories[:count] if t.position.shape[0] > c]
         self.frames = 0
         if chosen:
             self.frames = min([train_config.validation_rollout_frames] + [t.position.shape[0] - c for t in chosen])
+        self.rollouts = None
         if self.frames > 0:
-            budget = int(8 * math.ceil(max(t.position.shape[1] for t in chosen) / 8))
-            for traj in chosen:
-                n = traj.position.shape[1]
-                x = np.zeros((c + self.frames, budget, model_config.dim), np.float32)
-                x[:, :n] = traj.position[: c + self.frames]
-                radius = np.ones((budget,), np.float32)
-                radius[:n] = traj.radius
-                mask = np.arange(budget) < n
-                self.rollouts.append((x, radius, mask))
-            fits = [
-                graph_lib.capacity_for(
-                    x, m, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds, margin=0.25
-                )
-                for x, _, m in self.rollouts
-            ]
-            cells = [f.cell for f in fits if f.cell is not None]
-            self.capacity = graph_lib.GraphCapacity(
-                edges=max(f.edges for f in fits), cell=max(cells) if cells else None
-            )
+            # All padded to one node budget and one capacity: one compiled rollout for the lot.
+            position, radius, mask = stack_padded(chosen, frames=c + self.frames)
+            capacity = fit_capacity(position, model_config, mask=mask[:, None, :], margin=0.25)
+            self.rollouts = (position, radius, mask, capacity)
 
     def __call__(self, params) -> dict[str, float]:
         out: dict[str, float] = {}
         if self.batch is not None:
-            out["valid_one_step_loss"] = float(_clean_loss(params, self.batch, self.model_config, self.clean_config))
-        if self.rollouts:
+            out["valid_one_step_loss"] = float(self._clean_loss(params))
+        if self.rollouts is not None:
             c = self.model_config.input_sequence_length
-            errors = []
-            for x, radius, mask in self.rollouts:
-                predicted = rollout(
-                    params,
-                    x[:c],
-                    radius,
-                    self.frames,
-                    model_config=self.model_config,
-                    mask=mask,
-                    capacity=self.capacity,
-                )
-                errors.append(
-                    float(jnp.mean(per_frame_mse(jnp.concatenate([x[:c], predicted]), x, input_frames=c, mask=mask)))
-                )
+            position, radius, mask, capacity = self.rollouts
+            predicted = rollout_batch(
+                params,
+                position[:, :c],
+                radius,
+                self.frames,
+                model_config=self.model_config,
+                mask=mask,
+                capacity=capacity,
+                compiler_options=self.compiler_options,
+            )
+            errors = [
+                float(jnp.mean(per_frame_mse(jnp.concatenate([x[:c], p]), x, input_frames=c, mask=m)))
+                for x, p, m in zip(position, predicted, mask)
+            ]
             out["valid_rollout_mse"] = float(np.mean(errors))
             out["valid_rollout_frames"] = self.frames
         return out
 
+    def _clean_loss(self, params) -> float:
+        """The one-step loss without noise, on a graph grown until it fits (never a truncated one)."""
+        loss = jitted(_clean_loss, self.compiler_options, static_argnames=("model_config", "train_config"))
 
-@functools.partial(network_jit, static_argnums=(2, 3))
-def _clean_loss(params, batch, model_config, train_config):
-    return loss_fn(params["network"], params["normalization"], batch, jax.random.key(0), model_config, train_config)[0]
+        def attempt(_, sizes, __):
+            value, overflow = loss(
+                params, self.batch.with_capacity(*sizes), model_config=self.model_config, train_config=self.clean_config
+            )
+            return Attempt(None, None, 0, True) if bool(overflow) else Attempt(None, float(value), 1, False)
+
+        def grow(sizes, _):
+            grown = BatchStream.grow(self.batch.with_capacity(*sizes))
+            return grown.capacity, grown.edge_budget
+
+        _, (value,), sizes = drive(attempt, None, (self.batch.capacity, self.batch.edge_budget), grow)
+        self.batch = self.batch.with_capacity(*sizes)
+        return value
+
+
+def _clean_loss(params, batch, *, model_config, train_config):
+    loss, aux = loss_fn(
+        params["network"], params["normalization"], batch, jax.random.key(0), model_config, train_config
+    )
+    return loss, aux["overflow"]
 
 
 @dataclasses.dataclass
@@ -144,6 +159,7 @@ def train(
     checkpointer=None,
     on_step: Callable[[int, Mapping[str, float]], None] | None = None,
     on_log: Callable[[Mapping[str, Any]], None] | None = None,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> LoopResult:
     """Train from ``state.step`` up to ``until_step`` (default ``train_config.num_steps``).
 
@@ -164,6 +180,8 @@ def train(
       checkpointer: a :class:`~dispgns.training.checkpoint.Checkpointer` or ``None``.
       on_step: ``(step, {"loss", "learning_rate"})`` after every step.
       on_log: receives every log record.
+      compiler_options: XLA options for the training step (e.g.
+        :func:`dispgns.tuning.network_compiler_options`).
 
     Returns:
       :class:`LoopResult`. On ``KeyboardInterrupt`` the state is checkpointed
@@ -204,7 +222,9 @@ def train(
     try:
         while step < until:
             batch = stream.batch(step)
-            state, metrics, _ = train_step_checked(state, batch, jax.random.fold_in(key, step), grow=stream.grow)
+            state, metrics, _ = train_step_checked(
+                state, batch, jax.random.fold_in(key, step), compiler_options=compiler_options
+            )
             step += 1
             stream.position = step
             loss = float(metrics["loss"])

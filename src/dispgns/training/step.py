@@ -1,6 +1,6 @@
 """Training configuration, optimiser, loss and the jitted training step.
 
-One step on a :class:`~dispgns.data.examples.Batch` of ``B`` examples:
+One step on a :class:`~dispgns.training.batches.Batch` of ``B`` examples:
 
 1. random-walk noise on the ``C`` input frames (:mod:`.noise`);
 2. optionally ``k`` pushforward steps: the model advances the inputs ``k``
@@ -12,10 +12,11 @@ One step on a :class:`~dispgns.data.examples.Batch` of ``B`` examples:
 4. loss: squared error summed over ``D``, averaged over the real particles of
    the batch; Adam on ``params["network"]`` only.
 
-If some example's graph needs more than ``batch.capacity`` the step does not
-update anything (``metrics["overflow"]`` is True, ``state.step`` unchanged):
-retry the same batch with a larger capacity (``BatchStream.grow``), as
-:func:`train_step_checked` does.
+:func:`train_step` is pure. If some example's graph needs more than
+``batch.capacity`` it does not update anything (``metrics["overflow"]`` is
+True, ``state.step`` unchanged): retry the same batch with a larger capacity
+(``BatchStream.grow``), as the host convenience :func:`train_step_checked`
+does with :func:`dispgns.capacity.drive`.
 """
 
 from __future__ import annotations
@@ -31,12 +32,25 @@ import optax
 from flax import struct
 from jax import lax
 
-from dispgns._config import config_from_mapping
-from dispgns.data.examples import Batch
+from dispgns._config import check_fields, config_from_mapping
+from dispgns.capacity import Attempt, drive
+from dispgns.graph import merged_edge_count
 from dispgns.model import ModelConfig, identity_normalization, init_params
-from dispgns.runtime import network_jit
-from dispgns.simulator import build_graph, merged_edge_count, network_output_batch, one_step_batch, sanitize
+from dispgns.simulator import build_graph, network_output_batch, predict_step_batch, sanitize
+from dispgns.training.batches import Batch, BatchStream
 from dispgns.training.noise import random_walk_noise, target_acceleration
+from dispgns.tuning import jitted
+
+__all__ = [
+    "TrainConfig",
+    "TrainState",
+    "create_train_state",
+    "learning_rate_schedule",
+    "loss_fn",
+    "make_optimizer",
+    "train_step",
+    "train_step_checked",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,26 +107,16 @@ class TrainConfig:
     validation_rollout_frames: int = 50
 
     def __post_init__(self):
-        if not (self.noise_std >= 0):
-            raise ValueError(f"TrainConfig.noise_std must be >= 0, got {self.noise_std!r}")
-        for name in ("batch_size", "num_steps", "log_every", "keep_checkpoints"):
-            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
-                raise ValueError(f"TrainConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
-        for name in (
-            "validate_every",
-            "checkpoint_every",
-            "validation_examples",
-            "validation_trajectories",
-            "validation_rollout_frames",
-        ):
-            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
-                raise ValueError(f"TrainConfig.{name} must be an integer >= 0, got {getattr(self, name)!r}")
-        if int(self.pushforward_steps) != self.pushforward_steps or self.pushforward_steps < 0:
-            raise ValueError(f"TrainConfig.pushforward_steps must be an integer >= 0, got {self.pushforward_steps!r}")
-        for name in ("learning_rate", "lr_decay", "lr_decay_steps"):
-            if not (getattr(self, name) > 0):
-                raise ValueError(f"TrainConfig.{name} must be > 0, got {getattr(self, name)!r}")
-        if not (0 <= self.min_learning_rate <= self.learning_rate):
+        once = dict.fromkeys(("batch_size", "num_steps", "log_every", "keep_checkpoints"), 1)
+        counts = ("validate_every", "checkpoint_every", "validation_examples", "validation_trajectories")
+        counts += ("validation_rollout_frames", "pushforward_steps")
+        check_fields(
+            self,
+            integers={**once, **dict.fromkeys(counts, 0)},
+            positive=("learning_rate", "lr_decay", "lr_decay_steps"),
+            nonnegative=("noise_std", "min_learning_rate"),
+        )
+        if self.min_learning_rate > self.learning_rate:
             raise ValueError(
                 f"TrainConfig.min_learning_rate must lie in [0, learning_rate], got {self.min_learning_rate!r}"
             )
@@ -213,9 +217,16 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
 
         def advance(carry, _):
             windows, overflow = carry
-            _, nxt, step_overflow = one_step_batch(
-                params, windows, radius, mask, batch.capacity, model_config, edge_budget=batch.edge_budget
+            step = predict_step_batch(
+                params,
+                windows,
+                radius,
+                model_config=model_config,
+                capacity=batch.capacity,
+                mask=mask,
+                edge_budget=batch.edge_budget,
             )
+            nxt, step_overflow = step.position, step.overflow
             windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
             return (windows, overflow | jnp.any(step_overflow)), None
 
@@ -252,17 +263,13 @@ def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: 
     return loss, {"overflow": overflow}
 
 
-@functools.partial(network_jit, config_arg="state")
+@jax.jit
 def train_step(state: TrainState, batch: Batch, key: jax.Array):
-    """One optimiser step (jitted; compiles once per batch shape and capacity).
-
-    On the CPU, called outside any transformation, it is compiled with
-    :func:`dispgns.network_compiler_options`; inside the caller's own ``jit``
-    it gets that jit's options.
+    """One optimiser step (pure and jitted; compiles once per batch shape and capacity).
 
     Args:
       state: :class:`TrainState`.
-      batch: :class:`~dispgns.data.examples.Batch` with ``W = C + 1 +
+      batch: :class:`~dispgns.training.batches.Batch` with ``W = C + 1 +
         pushforward_steps`` frames.
       key: PRNG key of this step's noise; use ``jax.random.fold_in(key0,
         state.step)`` for runs that resume exactly.
@@ -302,33 +309,35 @@ def train_step(state: TrainState, batch: Batch, key: jax.Array):
     return new_state, metrics
 
 
-def train_step_checked(state: TrainState, batch: Batch, key: jax.Array, grow=None, max_retries: int = 8):
-    """:func:`train_step`, retried with a larger capacity until no graph overflows (host loop).
+def train_step_checked(
+    state: TrainState,
+    batch: Batch,
+    key: jax.Array,
+    *,
+    compiler_options: Mapping[str, Any] | None = None,
+):
+    """:func:`train_step` with the graph capacity grown until no graph overflows (host).
 
     Args:
-      grow: ``batch -> larger batch`` (e.g. ``BatchStream.grow``); default:
-        edges x 1.25.
+      state, batch, key: as :func:`train_step`.
+      compiler_options: XLA options for the step (e.g.
+        :func:`dispgns.tuning.network_compiler_options`).
 
     Returns:
-      ``(new_state, metrics, batch)``: the batch actually used (keep its
-      capacity for the next batches if it keeps overflowing).
+      ``(new_state, metrics, batch)``: the batch actually used (with the
+      capacity that fitted).
     """
-    from dispgns.graph import GraphCapacity, round_capacity
+    step = jitted(train_step, compiler_options)
 
-    for _ in range(max_retries + 1):
-        new_state, metrics = train_step(state, batch, key)
-        if not bool(metrics["overflow"]):
-            return new_state, metrics, batch
-        if grow is None:
-            cap = batch.capacity
-            budget = batch.edge_budget
-            batch = batch.with_capacity(
-                GraphCapacity(
-                    edges=round_capacity(int(cap.edges * 1.25), margin=0.0),
-                    cell=None if cap.cell is None else cap.cell + 2,
-                ),
-                None if budget is None else round_capacity(int(budget * 1.25), margin=0.0),
-            )
-        else:
-            batch = grow(batch)
-    raise RuntimeError(f"graph capacity still overflows after {max_retries} increases (now {batch.capacity})")
+    def attempt(state, sizes, _):
+        new_state, metrics = step(state, batch.with_capacity(*sizes), key)
+        if bool(metrics["overflow"]):
+            return Attempt(state, None, 0, True)
+        return Attempt(new_state, metrics, 1, False)
+
+    def grow(sizes, _):
+        grown = BatchStream.grow(batch.with_capacity(*sizes))
+        return grown.capacity, grown.edge_budget
+
+    new_state, (metrics,), sizes = drive(attempt, state, (batch.capacity, batch.edge_budget), grow)
+    return new_state, metrics, batch.with_capacity(*sizes)

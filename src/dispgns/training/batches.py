@@ -3,9 +3,11 @@
 An example is a window of ``C + 1 + k`` consecutive frames of one trajectory
 (``C`` input frames, then the target frame; ``k`` extra frames when training
 with ``k`` pushforward steps). A batch stacks ``B`` examples, padded to a
-node budget (particle slots) and carrying a static graph capacity (ordered
-pairs per example): the jitted training step compiles once per distinct
-``(node budget, capacity)`` and this module keeps those few.
+node budget (particle slots), with a static graph capacity per example and a
+static edge budget for the batch's merged graph, both sized by the graph
+capacity policy (:mod:`dispgns.graph`, on the ladder of
+:mod:`dispgns.capacity`): the jitted training step compiles once per distinct
+``(node budget, capacity, edge budget)``, and those repeat.
 
 Mirror augmentation (optional): the physics is symmetric under ``x_d -> -x_d``
 for every axis but the last (gravity), so each example of batch ``i`` may be
@@ -23,7 +25,6 @@ Units: positions and radii in normalised box units, as stored.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator, Sequence
 from typing import Any, NamedTuple
 
@@ -31,15 +32,21 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from dispgns.arrays import node_budget
 from dispgns.graph import (
-    CELL_LIST_MIN_PARTICLES,
     DEFAULT_BOUNDS,
     Bounds,
     GraphCapacity,
-    cell_list_possible,
+    capacity_for_counts,
+    edge_budget_for,
+    grow_capacity,
+    grow_edge_budget,
     host_count_pairs,
     host_max_cell_occupancy,
+    uses_cell_list,
 )
+
+__all__ = ["Batch", "BatchStream", "ExampleIndex", "example_index"]
 
 
 @struct.dataclass
@@ -109,10 +116,6 @@ def example_index(frame_counts: Sequence[int], window: int) -> ExampleIndex:
     )
 
 
-def _round_up(value: float, quantum: int) -> int:
-    return int(quantum * math.ceil(value / quantum))
-
-
 class BatchStream:
     """Deterministic, resumable stream of padded training batches.
 
@@ -128,21 +131,18 @@ class BatchStream:
       shuffle: ``False`` keeps examples in order (e.g. for validation).
       node_budgets: allowed particle-slot counts; ``None``: one budget, the
         largest ``N`` rounded up to a multiple of 8.
-      num_capacity_levels: how many graph sizes to derive from quantiles
-        (each costs one compilation): of the batches' total edge counts
-        with ``compact_edges``, else of the examples' pair counts.
-      compact_edges: give every example one graph capacity (the largest)
-        and every batch an ``edge_budget`` that fits its own edges, so that
-        the per-edge work follows the batch's real edges (default); ``False``:
-        no budget, example capacities from the pair-count quantiles.
+      compact_edges: give every example one graph capacity (fitting the
+        largest example) and every batch an ``edge_budget`` that fits its own
+        edges, so that the per-edge work follows the batch's real edges
+        (default); ``False``: no budget, each batch's capacity fits its
+        largest example.
       capacity_margin, capacity_extra: head-room of a capacity over the most
         pairs found in the example's graph frames: ``pairs * (1 + margin) +
-        extra`` (the training noise moves pairs across the radius).
+        extra`` (the training noise moves pairs across the radius), see
+        :func:`dispgns.graph.capacity_for_counts`.
       use_cell_list: build training graphs with the jax-md cell list; ``None``
-        (default) uses it when the node budget reaches
-        ``dispgns.graph.CELL_LIST_MIN_PARTICLES``, where it is faster than
-        testing all pairs. Its per-cell capacity is the fullest cell of any
-        frame plus head-room.
+        (default): :func:`dispgns.graph.uses_cell_list` of the node budget.
+        Its per-cell capacity fits the fullest cell of any frame.
       bounds: the box (only for the cell grid).
       mirror: reflect each example on the horizontal axes with probability
         1/2, drawn per batch index (so resuming replays the same batches);
@@ -160,7 +160,6 @@ class BatchStream:
         pushforward_steps: int = 0,
         shuffle: bool = True,
         node_budgets: Sequence[int] | None = None,
-        num_capacity_levels: int = 4,
         capacity_margin: float = 0.03,
         capacity_extra: int = 64,
         use_cell_list: bool | None = None,
@@ -205,7 +204,7 @@ class BatchStream:
             )
 
         max_n = max(x.shape[1] for x in self.positions)
-        self.node_budgets = sorted({int(b) for b in node_budgets}) if node_budgets else [_round_up(max_n, 8)]
+        self.node_budgets = sorted({int(b) for b in node_budgets}) if node_budgets else [node_budget([max_n])]
         if self.node_budgets[-1] < max_n:
             raise ValueError(f"node budgets {self.node_budgets} cannot hold {max_n} particles")
 
@@ -220,29 +219,17 @@ class BatchStream:
             ],
             np.int64,
         )
-        levels = np.arange(1, num_capacity_levels + 1) / num_capacity_levels
         self.compact_edges = bool(compact_edges)
-        self.edge_levels = None
-        if self.compact_edges:
-            self.capacity_levels = [self._required(self.pairs.max())]
-            # Budgets from the batches of the first epochs (the order is fixed by the seed).
-            sample = range(min(4 * self.batches_per_epoch, 4096))
-            needs = [self._edge_need(self.batch_examples(i)) for i in sample]
-            self.edge_levels = sorted({_round_up(q, 64) for q in np.quantile(needs, levels)} | {max(needs)})
-        else:
-            quantiles = np.quantile(self.pairs, levels)
-            self.capacity_levels = sorted({self._required(q) for q in quantiles} | {self._required(self.pairs.max())})
-        self.cell_capacity = None
         if use_cell_list is None:
-            use_cell_list = self.node_budgets[-1] >= CELL_LIST_MIN_PARTICLES and cell_list_possible(
-                self.positions[0].shape[-1], connectivity_radius=self.connectivity_radius, bounds=bounds
+            use_cell_list = uses_cell_list(
+                self.node_budgets[-1], self.dim, connectivity_radius=self.connectivity_radius, bounds=bounds
             )
+        self.occupancy = None
         if use_cell_list:
-            occupancy = max(
+            self.occupancy = max(
                 host_max_cell_occupancy(x, connectivity_radius=self.connectivity_radius, bounds=bounds)
                 for x in self.positions
             )
-            self.cell_capacity = occupancy + max(2, occupancy // 4)
         self.position = 0
 
     @classmethod
@@ -269,44 +256,38 @@ class BatchStream:
     def batches_per_epoch(self) -> int:
         return self.num_examples // self.batch_size
 
-    def _required(self, pairs: float) -> int:
-        return _round_up(pairs * (1.0 + self.capacity_margin) + self.capacity_extra, 64)
-
     def _edge_need(self, ids) -> int:
         """Edge slots the merged graph of examples ``ids`` needs: pairs with head-room plus every self-loop."""
         pairs = self.pairs[np.asarray(ids, np.int64)]
-        return _round_up(
-            float(np.sum(pairs * (1.0 + self.capacity_margin) + self.capacity_extra))
-            + len(pairs) * self._node_budget(ids),
-            64,
-        )
+        with_room = np.ceil(pairs * (1.0 + self.capacity_margin)) + self.capacity_extra
+        return int(np.sum(with_room)) + len(pairs) * self._node_budget(ids)
 
     def _node_budget(self, ids) -> int:
         n_max = max(self.positions[t].shape[1] for t in self.index.trajectory[np.asarray(ids, np.int64)])
         return next(b for b in self.node_budgets if b >= n_max)
 
+    def capacity_for(self, ids) -> GraphCapacity:
+        """Graph capacity of each example of a batch of examples ``ids`` (on the ladder)."""
+        ids = np.asarray(ids, np.int64)
+        pairs = self.pairs.max() if self.compact_edges else self.pairs[ids].max()
+        return capacity_for_counts(
+            int(pairs),
+            self._node_budget(ids),
+            occupancy=self.occupancy,
+            margin=self.capacity_margin,
+            extra=self.capacity_extra,
+        )
+
     def edge_budget_for(self, ids) -> int | None:
-        """Smallest edge-budget level that holds the merged graph of examples ``ids`` (``None`` without compaction)."""
-        if not self.compact_edges:
-            return None
-        need = self._edge_need(ids)
-        return next((level for level in self.edge_levels if level >= need), need)
+        """Edge slots of the merged graph of examples ``ids`` (on the ladder; ``None`` without compaction)."""
+        return edge_budget_for(self._edge_need(ids)) if self.compact_edges else None
 
-    def capacity_for_pairs(self, pairs: int) -> GraphCapacity:
-        """Smallest capacity level holding ``pairs`` with head-room (beyond the top level: rounded up)."""
-        need = self._required(pairs)
-        edges = next((level for level in self.capacity_levels if level >= need), need)
-        return GraphCapacity(edges=edges, cell=self.cell_capacity)
-
-    def grow(self, batch: Batch) -> Batch:
-        """``batch`` with the next capacity level (or 1.25 x) after an overflow of the training step."""
-        current = batch.capacity.edges
-        edges = next((level for level in self.capacity_levels if level > current), _round_up(1.25 * current, 64))
-        cell = None if batch.capacity.cell is None else batch.capacity.cell + max(2, batch.capacity.cell // 4)
-        budget = batch.edge_budget
-        if budget is not None:
-            budget = next((level for level in self.edge_levels if level > budget), _round_up(1.25 * budget, 64))
-        return batch.with_capacity(GraphCapacity(edges=edges, cell=cell), budget)
+    @staticmethod
+    def grow(batch: Batch) -> Batch:
+        """``batch`` with a larger capacity and edge budget, after an overflow of the training step."""
+        n = batch.node_budget
+        budget = None if batch.edge_budget is None else grow_edge_budget(batch.edge_budget)
+        return batch.with_capacity(grow_capacity(batch.capacity, n), budget)
 
     # -- order ---------------------------------------------------------------------------------
     def epoch_order(self, epoch: int) -> np.ndarray:
@@ -352,7 +333,7 @@ class BatchStream:
                 position[k, :, :n, :-1] *= np.where(flips[k], -1.0, 1.0).astype(np.float32)
             radius[k, :n] = self.radii[t]
             mask[k, :n] = True
-        capacity = self.capacity_for_pairs(int(self.pairs[ids].max()))
+        capacity = self.capacity_for(ids)
         example = np.stack([trajs, starts], axis=1).astype(np.int32)
         return Batch(
             position=position,

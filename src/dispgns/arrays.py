@@ -1,0 +1,78 @@
+"""Host-side array helpers shared by every layer: concrete inputs and particle padding.
+
+Host conveniences (the functions that size capacities from data and grow
+them) need concrete arrays; :func:`host_array` turns a traced one into a
+clear error that names the pure core to use instead. Batches of
+trajectories with different particle counts are padded to one particle
+budget with :func:`pad_particles` / :func:`stack_padded` (padding rows:
+position 0, radius 1, ``mask == False``; every consumer masks them out).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+__all__ = ["host_array", "node_budget", "pad_particles", "stack_padded"]
+
+
+def host_array(x, name: str, *, pure: str | None = None) -> np.ndarray:
+    """``x`` as a numpy array; a clear ``ValueError`` when it is traced (inside ``jit``, ``vmap``, ``grad``).
+
+    Args:
+      x: an array-like.
+      name: the argument's name, for the message.
+      pure: the pure function to use under a transformation, for the message.
+    """
+    try:
+        return np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        hint = f"; under jit/vmap/grad use {pure}, which takes its capacities explicitly" if pure else ""
+        raise ValueError(f"{name} must be a concrete array here (got a traced one){hint}") from None
+
+
+def node_budget(counts: Sequence[int], *, multiple: int = 8) -> int:
+    """Particle slots for trajectories of ``counts`` particles: the largest, rounded up to ``multiple``."""
+    return int(multiple * math.ceil(max(int(c) for c in counts) / multiple))
+
+
+def pad_particles(array: np.ndarray, count: int, *, axis: int, fill: Any) -> np.ndarray:
+    """``array`` with ``count`` padding rows of ``fill`` appended along the particle ``axis``."""
+    array = np.asarray(array)
+    if count <= 0:
+        return array
+    shape = list(array.shape)
+    shape[axis] = count
+    return np.concatenate([array, np.full(shape, fill, array.dtype)], axis=axis)
+
+
+def stack_padded(
+    trajectories: Sequence[Any], *, frames: int, budget: int | None = None, dtype=np.float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first ``frames`` frames of trajectories of any particle counts, stacked on one particle budget.
+
+    Args:
+      trajectories: objects with ``.position`` ``(T, N, D)`` (``T >= frames``)
+        and ``.radius`` ``(N,)``.
+      frames: frames kept from each.
+      budget: particle slots (``None``: :func:`node_budget` of the counts).
+
+    Returns:
+      ``(position (B, frames, budget, D), radius (B, budget), mask (B, budget))``;
+      padding rows hold position 0 and radius 1.
+    """
+    counts = [t.position.shape[1] for t in trajectories]
+    budget = node_budget(counts) if budget is None else int(budget)
+    dim = trajectories[0].position.shape[2]
+    position = np.zeros((len(trajectories), frames, budget, dim), dtype)
+    radius = np.ones((len(trajectories), budget), dtype)
+    mask = np.zeros((len(trajectories), budget), bool)
+    for k, (traj, n) in enumerate(zip(trajectories, counts)):
+        position[k, :, :n] = np.asarray(traj.position[:frames])
+        radius[k, :n] = np.asarray(traj.radius)
+        mask[k, :n] = True
+    return position, radius, mask
