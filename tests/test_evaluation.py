@@ -5,8 +5,12 @@ import numpy as np
 import pytest
 
 from dispgns.data import load_dataset
-from dispgns.evaluation import chaos_floor_trajectories, evaluate_trajectories, predict_trajectories
-from dispgns.evaluation import chaos_floor_rollout
+from dispgns.evaluation import (
+    chaos_floor_rollout,
+    chaos_floor_trajectories,
+    evaluate_trajectories,
+    predict_trajectories,
+)
 from dispgns.model import init_params
 from dispgns.simulator import rollout
 

@@ -36,7 +36,7 @@ def tiny(tmp_path_factory):
 def fake_simulate_batch(calls=None):
     """A stand-in for simulate_batch: frame k is x0 + k * 1e-6 m along x (no compilation)."""
 
-    def fake(x0, v0, radius, mask, config, *, n_frames, save_every, progress=None):
+    def fake(x0, v0, radius, mask, config, *, n_frames, save_every, progress=None, compiler_options=None):
         if calls is not None:
             calls.append(x0.shape)
         steps = np.arange(n_frames)[None, :, None, None] * np.array([1e-6, 0.0])

@@ -1,6 +1,7 @@
 """Radius graphs and the paper's features, against the reference file and invariances."""
 
 import functools
+import math
 from pathlib import Path
 
 import jax
@@ -112,15 +113,31 @@ def test_padding_never_pairs(ref):
         assert np.all(s[~real] == r[~real]) and np.sum(~real) == pad
 
 
-def test_capacity_helpers(ref):
+def test_the_capacity_policy_fits_grows_and_stays_on_the_ladder(ref, monkeypatch):
     x = ref["positions"][-1]
     assert G.host_count_pairs(x, connectivity_radius=0.2) == 1562 - 150
-    cap = G.capacity_for(x, connectivity_radius=0.2)
-    assert cap.edges >= 1412 and cap.cell is None
-    assert G.grow_capacity(cap).edges > cap.edges
-    cap_cells = G.capacity_for(x, connectivity_radius=0.2, use_cell_list=True)
-    occupancy = G.host_max_cell_occupancy(x, connectivity_radius=0.2)
-    assert cap_cells.cell >= occupancy >= 1
+    # The k-d tree path (large N) counts exactly what the dense path counts, per frame and per mask.
+    frames = ref["positions"]
+    mask = np.arange(x.shape[0]) % 3 != 0
+    dense = G.host_count_pairs(frames, mask, connectivity_radius=0.2)
+    monkeypatch.setattr(G, "_DENSE_COUNT_MAX_PARTICLES", 1)
+    np.testing.assert_array_equal(G.host_count_pairs(frames, mask, connectivity_radius=0.2), dense)
+    monkeypatch.undo()
+    cap = G.fit_capacity(x, connectivity_radius=0.2, use_cell_list=False)
+    assert cap.edges >= 1412 * 1.05 and cap.cell is None and G.on_ladder(cap) == cap
+    cap_cells = G.fit_capacity(x, connectivity_radius=0.2, use_cell_list=True)
+    assert cap_cells.cell >= G.host_max_cell_occupancy(x, connectivity_radius=0.2) >= 1
+    # Growth: at least 25 % more, enough for the positions it is given, on the ladder, capped at all pairs.
+    grown = G.grow_capacity(cap_cells, 150)
+    assert grown.edges >= 1.25 * cap_cells.edges and grown.cell >= 1.25 * cap_cells.cell and G.on_ladder(grown) == grown
+    tight = G.grow_capacity(G.GraphCapacity(64, 4), 150, x, connectivity_radius=0.2)
+    assert tight.edges >= 1412 * 1.2 and tight.cell >= G.host_max_cell_occupancy(x, connectivity_radius=0.2)
+    assert G.grow_capacity(G.full_capacity(150), 150) == G.full_capacity(150)  # nothing left to grow
+    # Sized from counts: head-room, then the ladder; never beyond all pairs.
+    assert G.capacity_for_counts(1412, 150).edges == G.on_ladder(G.GraphCapacity(math.ceil(1412 * 1.05) + 32)).edges
+    assert G.capacity_for_counts(10_000, 20) == G.GraphCapacity(380)
+    assert G.edge_budget_for(1000) == G.on_ladder(G.GraphCapacity(1000)).edges
+    assert G.grow_edge_budget(G.edge_budget_for(1000)) >= 1.25 * G.edge_budget_for(1000)
 
 
 def test_translation_invariance_of_features(ref):
@@ -156,7 +173,7 @@ def test_default_candidate_search_falls_back_to_all_pairs_where_no_cell_list_fit
     assert not G.cell_list_possible(2, connectivity_radius=2.5) and not G.cell_list_possible(
         1, connectivity_radius=0.05
     )
-    assert G.capacity_for(x[-1], connectivity_radius=2.5).cell is None
+    assert G.fit_capacity(x[-1], connectivity_radius=2.5).cell is None
     _, _, senders, receivers = F.graph_features(x, radius, connectivity_radius=2.5)
     d2 = ((x[-1, :, None].astype(np.float64) - x[-1, None, :]) ** 2).sum(-1)
     assert len(senders) == int((d2 < 2.5**2).sum())  # self-loops included
@@ -164,7 +181,7 @@ def test_default_candidate_search_falls_back_to_all_pairs_where_no_cell_list_fit
     _, _, senders, receivers = F.graph_features(line, radius, bounds=((-1.0, 1.0),), connectivity_radius=0.05)
     close = np.abs(line[-1, :, 0][:, None] - line[-1, :, 0][None, :]) < 0.05
     assert len(senders) == int(close.sum())
-    assert G.capacity_for(x[-1], connectivity_radius=0.2).cell is not None  # the usual case keeps the cell list
+    assert G.fit_capacity(x[-1], connectivity_radius=0.2).cell is not None  # the usual case keeps the cell list
 
 
 def test_capacities_on_the_ladder_are_shared_rungs():

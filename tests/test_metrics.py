@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from dispgns import metrics as M
+from dispgns.evaluation import chaos_floor_rollout
 from dispgns.physics import PhysicsConfig, simulate
 
 DATA = Path(__file__).parent / "data"
@@ -325,7 +326,7 @@ def _small_system():
 def test_chaos_floor_without_perturbation_is_the_simulation():
     x0, v0, radius = _small_system()
     config = PhysicsConfig()
-    floor = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(0), n_frames=20, perturbation=0.0)
+    floor = chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(0), n_frames=20, perturbation=0.0)
     with jax.enable_x64(True):
         exact = np.asarray(simulate(jnp.asarray(x0), jnp.asarray(v0), jnp.asarray(radius), config, n_frames=20))
     assert floor.dtype == np.float64 and floor.shape == (20, 10, 2)
@@ -335,9 +336,9 @@ def test_chaos_floor_without_perturbation_is_the_simulation():
 def test_chaos_floor_stays_close_for_a_few_frames():
     x0, v0, radius = _small_system()
     config = PhysicsConfig()
-    truth = M.chaos_floor_rollout(x0, v0, radius, config, key=0, n_frames=20, perturbation=0.0)
-    floor = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20)
-    again = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20)
+    truth = chaos_floor_rollout(x0, v0, radius, config, key=0, n_frames=20, perturbation=0.0)
+    floor = chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20)
+    again = chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20)
     np.testing.assert_array_equal(floor, again)  # seeded
     start = np.abs(floor[0] - truth[0])
     assert 0 < start.max() < 5e-6  # a 1e-6 L normal shift per coordinate
@@ -355,7 +356,7 @@ def test_chaos_floor_stays_close_for_a_few_frames():
     assert len(m["chaos_floor_per_frame_mse"]) == 20 - C
     # Padding particles are not perturbed (the physics tests show they never touch real ones).
     mask = np.arange(10) < 8
-    masked = M.chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20, mask=mask)
+    masked = chaos_floor_rollout(x0, v0, radius, config, key=jax.random.PRNGKey(1), n_frames=20, mask=mask)
     np.testing.assert_array_equal(masked[0, 8:], truth[0, 8:])
     assert np.all(masked[0, :8] != truth[0, :8])
 

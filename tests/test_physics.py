@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import dispgns.physics.integrate as integrate
-from dispgns import PhysicsConfig, sample_initial_state, simulate, simulate_batch
+from dispgns import PhysicsConfig, sample_initial_state, simulate, simulate_batch, simulate_scan
 from dispgns.physics import PlacementError, interaction_force, particle_count_range, particle_mass
 
 CONFIG = PhysicsConfig()
@@ -149,7 +149,8 @@ def test_kinetic_energy_decays_without_gravity_or_walls():
 def test_jit_equals_no_jit(small_state):
     args = (small_state.position, small_state.velocity, small_state.radius)
     eager = simulate(*args, CONFIG, n_frames=30)
-    jitted = jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=30))(*args)
+    jitted = jax.jit(lambda x, v, a: simulate_scan(x, v, a, CONFIG, n_frames=30).position)(*args)
+    assert not np.any(np.asarray(simulate_scan(*args, CONFIG, n_frames=30).overflow))
     np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=0, atol=1e-6)
 
 
@@ -159,7 +160,7 @@ def test_vmap_and_batch_equal_a_loop():
     vs = jnp.stack([s.velocity for s in states])
     rs = jnp.stack([s.radius for s in states])
     loop = np.stack([np.asarray(simulate(s.position, s.velocity, s.radius, CONFIG, n_frames=20)) for s in states])
-    vmapped = jax.vmap(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=20))(xs, vs, rs)
+    vmapped = jax.vmap(lambda x, v, a: simulate_scan(x, v, a, CONFIG, n_frames=20).position)(xs, vs, rs)
     batched = simulate_batch(xs, vs, rs, jnp.ones(rs.shape, bool), CONFIG, n_frames=20)
     np.testing.assert_allclose(np.asarray(vmapped), loop, rtol=0, atol=1e-6)
     np.testing.assert_allclose(np.asarray(batched), loop, rtol=0, atol=1e-6)
@@ -196,21 +197,32 @@ def converging_ring(n=40, ring=0.08, speed=1.0, radius=3e-3):
     return ring * direction, -speed * direction, np.full(n, radius)
 
 
+def capacities_tried(monkeypatch):
+    """The capacities the physics' host driver runs its attempts with (a spy on ``dispgns.capacity.drive``)."""
+    tried = []
+    original = integrate.drive
+
+    def spy(run, state, capacity, grow, **kwargs):
+        def recorded(state, capacity, remaining):
+            tried.append(capacity)
+            return run(state, capacity, remaining)
+
+        return original(recorded, state, capacity, grow, **kwargs)
+
+    monkeypatch.setattr(integrate, "drive", spy)
+    return tried
+
+
 def test_neighbor_list_overflow_is_detected_and_recomputed(monkeypatch):
     config = dataclasses.replace(CONFIG, cutoff=0.02, neighbor_skin=1e-3)
     x0, v0, radius = converging_ring()
-    allocations = []
-    original = integrate._allocate_neighbors
-
-    def counting(*args, **kwargs):
-        allocations.append(args[3])
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(integrate, "_allocate_neighbors", counting)
+    tried = capacities_tried(monkeypatch)
     run = simulate(x0, v0, radius, config, n_frames=60, chunk_frames=10)
-    assert len(allocations) >= 2, "the neighbour list never overflowed; the test lost its purpose"
-    # Same cutoff on the all-pairs path (used under jit), which has no capacity to overflow.
-    exact = jax.jit(lambda x, v, a: simulate(x, v, a, config, n_frames=60))(x0, v0, radius)
+    sizes = [(c.cell, c.neighbors) for c in tried]
+    assert len(set(sizes)) >= 2, "the neighbour list never overflowed; the test lost its purpose"
+    assert sizes == sorted(sizes)  # only ever grown
+    # Same cutoff on the pure all-pairs path, which has no neighbour list to overflow.
+    exact = jax.jit(lambda x, v, a: simulate_scan(x, v, a, config, n_frames=60).position)(x0, v0, radius)
     np.testing.assert_allclose(np.asarray(run), np.asarray(exact), rtol=0, atol=1e-5)
 
 
@@ -223,15 +235,10 @@ def row_hitting_the_floor(n=6, radius=5e-3):
 
 def test_collision_capacity_overflow_is_detected_and_recomputed(monkeypatch):
     x0, v0, radius = row_hitting_the_floor()
-    capacities = []
-    original = integrate._advance_frames_jit
-
-    def spy(state, neighbors, config, length, save_every, capacity, batched):
-        capacities.append(capacity)
-        return original(state, neighbors, config, length, save_every, capacity, batched)
-
-    monkeypatch.setattr(integrate, "_advance_frames_jit", spy)
+    assert np.asarray(simulate_scan(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=1).overflow).any()
+    tried = capacities_tried(monkeypatch)
     small = simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=1, chunk_frames=10)
+    capacities = [c.collisions for c in tried]
     assert capacities[0] == 1 and max(capacities) > 1
     exact = simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=None)
     np.testing.assert_allclose(np.asarray(small), np.asarray(exact), rtol=0, atol=1e-6)
@@ -239,13 +246,19 @@ def test_collision_capacity_overflow_is_detected_and_recomputed(monkeypatch):
 
 def test_overflow_under_jit_poisons_instead_of_lying():
     x0, v0, radius = row_hitting_the_floor()
-    run = jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=30, collision_capacity=1))(x0, v0, radius)
-    assert np.isnan(np.asarray(run)[-1]).all()
+    run = jax.jit(lambda x, v, a: simulate_scan(x, v, a, CONFIG, n_frames=30, collision_capacity=1))(x0, v0, radius)
+    assert np.isnan(np.asarray(run.position)[-1]).all() and bool(run.overflow[-1])
+
+
+def test_host_drivers_name_the_pure_core_under_a_transformation(small_state):
+    args = (small_state.position, small_state.velocity, small_state.radius)
+    with pytest.raises(ValueError, match="simulate_scan"):
+        jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=3))(*args)
 
 
 def test_gradient_through_simulate_is_finite(small_state):
     def final_height(radius):
-        x = simulate(small_state.position, small_state.velocity, radius, CONFIG, n_frames=10)
+        x = simulate_scan(small_state.position, small_state.velocity, radius, CONFIG, n_frames=10).position
         return jnp.mean(x[-1, :, 1])
 
     grad = jax.grad(final_height)(small_state.radius)
@@ -314,7 +327,9 @@ def test_traced_overflow_poisons_only_frames_from_the_overflow_on():
     v0 = np.tile([0.0, -1.0], (2, 1))
     radius = np.full(2, 5e-3)
     run = np.asarray(
-        jax.jit(lambda x, v, a: simulate(x, v, a, CONFIG, n_frames=30, collision_capacity=1))(x0, v0, radius)
+        jax.jit(lambda x, v, a: simulate_scan(x, v, a, CONFIG, n_frames=30, collision_capacity=1).position)(
+            x0, v0, radius
+        )
     )
     exact = np.asarray(simulate(x0, v0, radius, CONFIG, n_frames=30, collision_capacity=None))
     finite = np.isfinite(run).all(axis=(1, 2))

@@ -7,13 +7,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import dispgns.physics.forces as forces
-from dispgns import PhysicsConfig
+from dispgns import PhysicsConfig, euler_integrator, tuning
 from dispgns.physics import interaction_force, neighbor_fn_for
-from dispgns.physics.integrate import _park_padding
 
 CONFIG = PhysicsConfig(cutoff=0.03, neighbor_skin=2e-3)
 L = CONFIG.box_half_size
+
+
+def parked(position, mask):
+    """Positions as the integrator holds them (padding parked far outside the box), in the cell-list frame."""
+    init_fn, _ = euler_integrator(CONFIG)
+    return init_fn(position, jnp.zeros_like(position), jnp.full(position.shape[:1], 1e-3), mask).position + L
 
 
 def random_system(dim, n=60, seed=0):
@@ -33,7 +37,7 @@ def brute_force_pairs(position, reach):
 def test_neighbor_lists_hold_every_pair_within_the_list_radius(dim):
     position, _ = random_system(dim)
     mask = jnp.arange(position.shape[0]) < 50  # the last 10 are padding, parked outside the box
-    shifted = _park_padding(position, mask, CONFIG) + L
+    shifted = parked(position, mask)
     neighbor_fn = neighbor_fn_for(CONFIG, dim)
     nbrs = neighbor_fn.allocate(shifted)
     moved = neighbor_fn.update(shifted + 5e-4, nbrs)
@@ -48,15 +52,14 @@ def test_neighbor_lists_hold_every_pair_within_the_list_radius(dim):
 
 
 @pytest.mark.parametrize("slot_loop", [True, False])
-def test_neighbor_forces_equal_all_pairs_with_the_cutoff(monkeypatch, slot_loop):
-    monkeypatch.setattr(forces, "_SLOT_LOOP_MAX_PAIRS", 2**30 if slot_loop else 0)
+def test_neighbor_forces_equal_all_pairs_with_the_cutoff(slot_loop):
     # float64: the two paths sum the pair terms differently (a row sum and a
     # matrix product), and in float32 their rounding alone reaches 1e-5 of
     # the force for these overlapping random particles.
-    with jax.enable_x64(True):
+    with jax.enable_x64(True), tuning.use_thresholds(slot_loop_max_pairs=2**30 if slot_loop else 1):
         position, radius = random_system(2, seed=1)
         mask = jnp.arange(position.shape[0]) != 7
-        nbrs = neighbor_fn_for(CONFIG, 2).allocate(_park_padding(position, mask, CONFIG) + L)
+        nbrs = neighbor_fn_for(CONFIG, 2).allocate(parked(position, mask))
         # Trial positions near each particle, as wall contact points are.
         query = position + 1e-3
         index = jnp.arange(position.shape[0]).at[3].set(position.shape[0])  # row 3 is padding

@@ -8,8 +8,8 @@ import pytest
 
 from dispgns.cli import main
 from dispgns.data import load_dataset
-from dispgns.training.batches import BatchStream
 from dispgns.training import TrainConfig, compute_normalization, create_train_state
+from dispgns.training.batches import BatchStream
 from dispgns.training.checkpoint import Checkpointer, CheckpointError, export_model, load_model
 from dispgns.training.loop import Validator, train
 

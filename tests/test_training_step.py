@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dispgns.training.batches import BatchStream, example_index
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig
 from dispgns.training import (
@@ -20,6 +19,7 @@ from dispgns.training import (
     target_acceleration,
     train_step,
 )
+from dispgns.training.batches import BatchStream, example_index
 from dispgns.training.step import train_step_checked
 
 TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)

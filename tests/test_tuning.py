@@ -46,7 +46,9 @@ print(json.dumps({"env": changed_env, "config": changed_config, "ctypes": seen,
 
 def _child(code: str, **env) -> str:
     environment = dict(os.environ, JAX_PLATFORMS="cpu", **env)
-    return subprocess.run([sys.executable, "-c", code], env=environment, capture_output=True, text=True, check=True).stdout
+    return subprocess.run(
+        [sys.executable, "-c", code], env=environment, capture_output=True, text=True, check=True
+    ).stdout
 
 
 def test_import_and_a_rollout_change_nothing_outside_dispgns():

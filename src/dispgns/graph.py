@@ -493,7 +493,10 @@ def grow_capacity(
             use_cell_list=capacity.cell is not None,
         )
         edges, cell = max(edges, fit.edges), None if cell is None else max(cell, fit.cell)
-    return on_ladder(GraphCapacity(edges=edges, cell=cell), n)
+    edges, cell = min(edges, n * (n - 1)), None if cell is None else min(cell, max(n, 1))
+    return on_ladder(
+        GraphCapacity(edges=max(edges, capacity.edges), cell=None if cell is None else max(cell, capacity.cell)), n
+    )
 
 
 def full_capacity(n: int) -> GraphCapacity:
