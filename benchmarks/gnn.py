@@ -55,7 +55,8 @@ from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 import dispgns
 from dispgns.training.batches import BatchStream
 from dispgns.graph import capacity_for, host_count_pairs
-from dispgns.model import MLP, ModelConfig, count_parameters
+from dispgns.kernels import MLP
+from dispgns.model import ModelConfig, count_parameters
 from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
 from dispgns.simulator import _rollout_chunk
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step

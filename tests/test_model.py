@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import json
 from pathlib import Path
 
 import jax
@@ -65,12 +66,36 @@ def test_public_api_is_reexported():
         assert hasattr(dispgns, name), name
 
 
-def test_jit_equals_eager(params, inputs):
+@pytest.mark.parametrize("kernels", ["plain", "fused"])
+def test_jit_equals_eager(params, inputs, kernels):
     x, a = inputs
-    eager = predict_acceleration(params, x, a, model_config=TINY)
-    jitted = _acc(params, x, a)
+    config = dataclasses.replace(TINY, kernels=kernels)
+    eager = predict_acceleration(params, x, a, model_config=config)
+    jitted = _acc(params, x, a, config=config)
     assert eager.shape == (N, 2)
     np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("kernels", ["plain", "fused"])
+def test_network_gradient_jit_equals_eager(params, kernels):
+    from dispgns.model import apply_network
+
+    config = dataclasses.replace(TINY, kernels=kernels)
+    n, slots = 10, 32
+    key = jax.random.split(jax.random.key(5), 4)
+    nodes = jax.random.normal(key[0], (n, config.node_feature_size))
+    edges = jax.random.normal(key[1], (slots, config.edge_feature_size))
+    receivers = jnp.sort(jax.random.randint(key[2], (slots,), 0, n + 1))  # some unused slots (index n), last
+    senders = jnp.where(receivers < n, jax.random.randint(key[3], (slots,), 0, n), n)
+
+    def loss(net):
+        return jnp.sum(jnp.sin(apply_network(net, nodes, edges, senders, receivers, model_config=config)))
+
+    eager, jitted = jax.grad(loss)(params["network"]), jax.jit(jax.grad(loss))(params["network"])
+    for g, want in zip(jax.tree_util.tree_leaves(jitted), jax.tree_util.tree_leaves(eager)):
+        np.testing.assert_allclose(
+            np.asarray(g), np.asarray(want), rtol=1e-5, atol=1e-6 * float(jnp.max(jnp.abs(want)))
+        )
 
 
 def test_permutation_equivariance(params, inputs):
@@ -125,9 +150,10 @@ def test_edge_embeddings_are_updated_by_messages(params, inputs):
     assert float(jnp.max(jnp.abs(edge_grad))) > 0
 
 
-def test_bfloat16_matmuls_stay_close(params, inputs):
+@pytest.mark.parametrize("kernels", ["plain", "fused"])
+def test_bfloat16_matmuls_stay_close(params, inputs, kernels):
     x, a = inputs
-    bf16 = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, matmul_dtype="bfloat16")
+    bf16 = dataclasses.replace(TINY, matmul_dtype="bfloat16", kernels=kernels)
     ref = _acc(params, x, a)
     low = _acc(params, x, a, config=bf16)
     assert low.dtype == jnp.float32
@@ -138,7 +164,7 @@ def test_bfloat16_matmuls_stay_close(params, inputs):
 def test_layer_norm_matches_flax():
     import flax.linen as nn
 
-    from dispgns.model import LayerNorm
+    from dispgns.kernels import LayerNorm
 
     x = jax.random.normal(jax.random.key(0), (30, 16)) * 3 + 1
     variables = {
@@ -183,12 +209,15 @@ def _reference_network(net, nodes, edges, senders, receivers, n_real_edges, conf
     return mlp(net["decoder"], x, layer_norm=False)
 
 
+@pytest.mark.parametrize("kernels", ["plain", "fused"])
 @pytest.mark.parametrize("hidden_layers", [0, 1, 2])
-def test_network_matches_a_plain_reference_implementation(hidden_layers):
-    """The split first layer and the LayerNorm centring folded into kernels compute the spec's function."""
+def test_network_matches_a_plain_reference_implementation(hidden_layers, kernels):
+    """The split first layer (both kernels) and the fused kernels' folded LayerNorm centring compute the spec."""
     from dispgns.model import apply_network
 
-    config = ModelConfig(latent_size=16, hidden_size=24, hidden_layers=hidden_layers, message_passing_steps=3)
+    config = ModelConfig(
+        latent_size=16, hidden_size=24, hidden_layers=hidden_layers, message_passing_steps=3, kernels=kernels
+    )
     net = init_params(jax.random.key(1), config)["network"]
     # Non-trivial biases and LayerNorm parameters, so that folding them is tested too.
     leaves, treedef = jax.tree_util.tree_flatten(net)
@@ -249,7 +278,9 @@ def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
         merged = network_output_batch(p, xs, radii, graphs, model_config=TINY, edge_budget=budget)
         separate = jnp.stack(
             [
-                network_output(p, xs[k], radii[k], jax.tree_util.tree_map(lambda g: g[k], graphs), model_config=TINY)
+                network_output(
+                    p, xs[k], radii[k], jax.tree_util.tree_map(lambda g, k=k: g[k], graphs), model_config=TINY
+                )
                 for k in range(2)
             ]
         )
@@ -270,7 +301,7 @@ def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
 
 @pytest.mark.parametrize("rows", [24, 13])
 def test_bfloat16_matmul_gradient_matches_autodiff(rows):
-    from dispgns.model import _matmul_bf16
+    from dispgns.kernels import _matmul_bf16
 
     x = jax.random.normal(jax.random.key(0), (rows, 16))
     kernel = jax.random.normal(jax.random.key(1), (16, 8))
@@ -291,9 +322,10 @@ def test_bfloat16_matmul_gradient_matches_autodiff(rows):
     np.testing.assert_array_equal(np.asarray(_matmul_bf16(x, kernel)), np.asarray(plain(x, kernel)))
 
 
-def test_bfloat16_network_gradient_close_to_float32(params, inputs):
+@pytest.mark.parametrize("kernels", ["plain", "fused"])
+def test_bfloat16_network_gradient_close_to_float32(params, inputs, kernels):
     x, a = inputs
-    bf16 = dataclasses.replace(TINY, matmul_dtype="bfloat16")
+    bf16 = dataclasses.replace(TINY, matmul_dtype="bfloat16", kernels=kernels)
 
     def loss(net, config):
         p = {"network": net, "normalization": params["normalization"]}
@@ -304,3 +336,77 @@ def test_bfloat16_network_gradient_close_to_float32(params, inputs):
     for leaf32, leaf16 in zip(jax.tree_util.tree_leaves(g32), jax.tree_util.tree_leaves(g16)):
         scale = float(jnp.max(jnp.abs(leaf32)))
         assert float(jnp.max(jnp.abs(leaf16 - leaf32))) <= 0.1 * scale + 1e-6
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped model (latent 64, 5 blocks) and all 150 particles of the test frames."""
+    from dispgns.pretrained import load_pretrained
+
+    params, config, _ = load_pretrained()
+    with np.load(DATA) as d:
+        x = jnp.asarray(d["positions"], jnp.float32)
+        a = jnp.asarray(d["radius"], jnp.float32)
+    return params, config, x, a
+
+
+def test_model_json_without_kernels_loads_as_plain(shipped):
+    from dispgns.pretrained import pretrained_path
+    from dispgns.tuning import tuned_model_config
+
+    stored = json.loads((pretrained_path() / "model.json").read_text())["model"]
+    assert "kernels" not in stored  # written before the option existed
+    config = shipped[1]
+    assert config.kernels == "plain" and ModelConfig.from_dict(stored) == config
+    fused = tuned_model_config(config)
+    assert fused == dataclasses.replace(config, kernels="fused")
+    assert fused.to_dict()["kernels"] == "fused" and ModelConfig.from_dict(fused.to_dict()) == fused
+    with pytest.raises(ValueError, match="ModelConfig.kernels must be one of"):
+        ModelConfig(kernels="gpu")
+
+
+def test_plain_and_fused_kernels_agree_on_the_shipped_model(shipped):
+    """Same outputs and gradients, to float32 rounding.
+
+    The kernels differ in summation order only (LayerNorm centring folded into
+    the layer before it, means as dot products, another variance formula than
+    flax's): a few ulps (1.2e-7) per operation, grown through 5 residual blocks
+    and 25 LayerNorms to 2.6e-6 (outputs) and 8.5e-6 (gradients) of each
+    array's largest value on these frames. 3e-5 and 1e-4 leave a 10x margin,
+    while a wrong term (a bias, a centring, a sender) is off by O(1).
+    """
+    params, config, x, a = shipped
+    w = jax.random.normal(jax.random.key(0), (x.shape[1], config.dim))
+
+    def run(kernels):
+        c = dataclasses.replace(config, kernels=kernels)
+
+        def loss(net):
+            acc = predict_acceleration({"network": net, "normalization": params["normalization"]}, x, a, model_config=c)
+            return jnp.sum(acc * w), acc
+
+        return jax.jit(jax.grad(loss, has_aux=True))(params["network"])
+
+    (g_plain, plain), (g_fused, fused) = run("plain"), run("fused")
+    scale = float(jnp.max(jnp.abs(plain)))
+    assert scale > 0 and float(jnp.max(jnp.abs(fused - plain))) <= 3e-5 * scale
+    for (path, gp), gf in zip(jax.tree_util.tree_leaves_with_path(g_plain), jax.tree_util.tree_leaves(g_fused)):
+        scale = float(jnp.max(jnp.abs(gp)))
+        assert float(jnp.max(jnp.abs(gf - gp))) <= 1e-4 * scale, jax.tree_util.keystr(path)
+
+
+def test_bfloat16_kernels_agree_on_the_shipped_model(shipped):
+    """With bfloat16 matmuls the two kernels differ by less than bfloat16 differs from float32.
+
+    The fused kernels round the centred kernel instead of the kernel (2^-9
+    relative each), so they agree to bfloat16 rounding, not float32's: on
+    these frames the outputs differ by 4 % of their largest value between the
+    kernels and by 13 % between bfloat16 and float32.
+    """
+    params, config, x, a = shipped
+    bf16 = dataclasses.replace(config, matmul_dtype="bfloat16")
+    ref = _acc(params, x, a, config=config, capacity=None)
+    plain = _acc(params, x, a, config=bf16, capacity=None)
+    fused = _acc(params, x, a, config=dataclasses.replace(bf16, kernels="fused"), capacity=None)
+    assert plain.dtype == fused.dtype == jnp.float32
+    assert 0 < float(jnp.max(jnp.abs(fused - plain))) <= float(jnp.max(jnp.abs(plain - ref)))
