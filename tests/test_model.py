@@ -12,7 +12,7 @@ import pytest
 
 import dispgns
 from dispgns.model import ModelConfig, count_parameters, init_params
-from dispgns.simulator import predict_acceleration
+from dispgns.simulator import fit_capacity, predict_acceleration, predict_step
 
 DATA = Path(__file__).parent / "data" / "features.npz"
 TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
@@ -39,9 +39,14 @@ def params():
     return init_params(jax.random.key(0), TINY, norm)
 
 
+def acceleration(params, x, a, *, model_config, mask=None, capacity=CAPACITY):
+    """The pure one-step acceleration (what jit, vmap and grad see)."""
+    return predict_step(params, x, a, model_config=model_config, capacity=capacity, mask=mask).acceleration
+
+
 @functools.partial(jax.jit, static_argnames=("config", "capacity"))
 def _acc(params, x, a, mask=None, *, config=TINY, capacity=CAPACITY):
-    return predict_acceleration(params, x, a, model_config=config, mask=mask, capacity=capacity)
+    return acceleration(params, x, a, model_config=config, mask=mask, capacity=capacity)
 
 
 def test_parameter_count_of_the_paper_model():
@@ -124,7 +129,7 @@ def test_padding_changes_no_output_nor_gradient(params, inputs):
     mask = jnp.arange(N + pad) < N
 
     def loss(p, x, a, mask, capacity):
-        acc = predict_acceleration(p, x, a, model_config=TINY, mask=mask, capacity=capacity)
+        acc = acceleration(p, x, a, model_config=TINY, mask=mask, capacity=capacity)
         return jnp.sum(jnp.where(mask[:, None] if mask is not None else True, acc, 0.0) ** 2), acc
 
     grad = jax.jit(jax.grad(loss, has_aux=True), static_argnums=(4,))
@@ -143,7 +148,7 @@ def test_edge_embeddings_are_updated_by_messages(params, inputs):
 
     def loss(net):
         p = {"network": net, "normalization": params["normalization"]}
-        return jnp.sum(predict_acceleration(p, x, a, model_config=TINY, capacity=CAPACITY) ** 2)
+        return jnp.sum(acceleration(p, x, a, model_config=TINY, capacity=CAPACITY) ** 2)
 
     g = jax.jit(jax.grad(loss))(params["network"])
     edge_grad = g["block_0"]["edge"]["Dense_0"]["kernel"]
@@ -252,15 +257,8 @@ def test_network_matches_a_plain_reference_implementation(hidden_layers, kernels
 
 
 def test_batch_as_one_graph_equals_separate_graphs(params, inputs):
-    from dispgns.graph import GraphCapacity
-    from dispgns.simulator import (
-        build_graph,
-        merge_graphs,
-        merged_edge_count,
-        network_output,
-        network_output_batch,
-        sanitize,
-    )
+    from dispgns.graph import GraphCapacity, merge_graphs, merged_edge_count
+    from dispgns.simulator import build_graph, network_output, network_output_batch, sanitize
 
     x, a = inputs
     n2 = N - 9
@@ -329,7 +327,7 @@ def test_bfloat16_network_gradient_close_to_float32(params, inputs, kernels):
 
     def loss(net, config):
         p = {"network": net, "normalization": params["normalization"]}
-        return jnp.sum(predict_acceleration(p, x, a, model_config=config, capacity=CAPACITY) ** 2)
+        return jnp.sum(acceleration(p, x, a, model_config=config, capacity=CAPACITY) ** 2)
 
     g32 = jax.jit(jax.grad(loss), static_argnums=1)(params["network"], TINY)
     g16 = jax.jit(jax.grad(loss), static_argnums=1)(params["network"], bf16)
@@ -377,12 +375,15 @@ def test_plain_and_fused_kernels_agree_on_the_shipped_model(shipped):
     """
     params, config, x, a = shipped
     w = jax.random.normal(jax.random.key(0), (x.shape[1], config.dim))
+    capacity = fit_capacity(x[-1], config)
 
     def run(kernels):
         c = dataclasses.replace(config, kernels=kernels)
 
         def loss(net):
-            acc = predict_acceleration({"network": net, "normalization": params["normalization"]}, x, a, model_config=c)
+            acc = acceleration(
+                {"network": net, "normalization": params["normalization"]}, x, a, model_config=c, capacity=capacity
+            )
             return jnp.sum(acc * w), acc
 
         return jax.jit(jax.grad(loss, has_aux=True))(params["network"])
@@ -405,8 +406,9 @@ def test_bfloat16_kernels_agree_on_the_shipped_model(shipped):
     """
     params, config, x, a = shipped
     bf16 = dataclasses.replace(config, matmul_dtype="bfloat16")
-    ref = _acc(params, x, a, config=config, capacity=None)
-    plain = _acc(params, x, a, config=bf16, capacity=None)
-    fused = _acc(params, x, a, config=dataclasses.replace(bf16, kernels="fused"), capacity=None)
+    cap = fit_capacity(x[-1], config)
+    ref = _acc(params, x, a, config=config, capacity=cap)
+    plain = _acc(params, x, a, config=bf16, capacity=cap)
+    fused = _acc(params, x, a, config=dataclasses.replace(bf16, kernels="fused"), capacity=cap)
     assert plain.dtype == fused.dtype == jnp.float32
     assert 0 < float(jnp.max(jnp.abs(fused - plain))) <= float(jnp.max(jnp.abs(plain - ref)))

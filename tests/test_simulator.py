@@ -1,16 +1,26 @@
 """One-step predictions and rollouts: loops, vmap, overflow handling, gradients."""
 
+import functools
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax import lax
 
+from dispgns import simulator
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig, init_params
-from dispgns.simulator import predict_acceleration, predict_position, rollout, rollout_batch
+from dispgns.simulator import (
+    fit_capacity,
+    predict_acceleration,
+    predict_position,
+    predict_step,
+    rollout,
+    rollout_batch,
+    rollout_scan,
+    steps_until_overflow,
+)
 
 DATA = Path(__file__).parent / "data" / "features.npz"
 TINY = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2)
@@ -73,17 +83,20 @@ def test_overflow_is_caught_and_recomputed(params, inputs):
 
 
 def test_a_chunk_stops_at_its_first_overflowing_step(params, inputs):
-    from dispgns.simulator import _rollout_chunk
-
     x, a = inputs
-    mask = jnp.ones((N,), bool)
     window, expected = x, []
     for _ in range(4):
         expected.append(predict_position(params, window, a, model_config=TINY, capacity=CAP))
         window = jnp.concatenate([window[1:], expected[-1][None]])
-    run = lambda limit, capacity: _rollout_chunk(
-        params, x, a, mask, jnp.int32(limit), length=6, capacity=capacity, model_config=TINY
-    )
+
+    @functools.partial(jax.jit, static_argnums=(1,))
+    def run(limit, capacity):
+        def step(w):
+            out = predict_step(params, w, a, model_config=TINY, capacity=capacity)
+            return out.position, out.overflow
+
+        return steps_until_overflow(step, x, jnp.int32(limit), length=6, axis=0)
+
     window, positions, taken, overflow = run(4, CAP)
     assert int(taken) == 4 and not bool(overflow)
     np.testing.assert_allclose(np.asarray(positions[:4]), np.asarray(jnp.stack(expected)), rtol=0, atol=2e-6)
@@ -101,13 +114,11 @@ def _counting_step(window, capacity, axis):
 
 @pytest.mark.parametrize("axis", [0, 1])
 def test_the_step_loop_stops_mid_chunk_at_an_overflow(axis):
-    from dispgns.simulator import _steps_until_overflow
-
     window = jnp.moveaxis(jnp.broadcast_to(jnp.arange(3.0)[:, None, None, None], (3, 2, 1, 1)), 0, axis)
     if axis == 0:
         window = window[:, 0]
     run = jax.jit(
-        lambda w, limit, cap: _steps_until_overflow(
+        lambda w, limit, cap: steps_until_overflow(
             lambda w: _counting_step(w, cap, axis), w, limit, length=8, axis=axis
         )
     )
@@ -124,47 +135,61 @@ def test_the_step_loop_stops_mid_chunk_at_an_overflow(axis):
     np.testing.assert_array_equal(np.asarray(positions).reshape(8, -1)[:, 0], np.arange(3.0, 11.0))
 
 
-@pytest.mark.parametrize("axis", [0, 1])
-def test_the_chunk_loop_redoes_only_the_overflowing_step(axis):
-    """The host loop on a counting stand-in, for one trajectory (axis 0) and a batch of two (axis 1)."""
-    from dispgns.simulator import _roll_in_chunks
+def attempts_of(monkeypatch):
+    """Every attempt the simulator's host driver makes: ``(capacity, steps kept, overflow)``."""
+    seen = []
+    original = simulator.drive
 
-    calls, done = [], []
+    def spy(run, state, capacity, grow, **kwargs):
+        def recorded(state, capacity, remaining):
+            attempt = run(state, capacity, remaining)
+            seen.append((capacity, attempt.done, attempt.overflow))
+            return attempt
 
-    def run_chunk(window, limit, length, capacity):
-        frames, overflow = [], False
-        while len(frames) < int(limit) and not overflow:
-            nxt, overflow = _counting_step(window, capacity, axis)
-            calls.append(float(jnp.max(nxt)) - 1)
-            frames.append(nxt)
-            if not overflow:  # as the compiled loop: the window before the overflowing step
-                window = jnp.concatenate(
-                    [lax.slice_in_dim(window, 1, None, axis=axis), jnp.expand_dims(nxt, axis)], axis=axis
-                )
-        taken = len(frames)
-        positions = jnp.concatenate([jnp.stack(frames), jnp.zeros((length - taken,) + frames[0].shape)])
-        return window, positions, taken, bool(overflow)
+        return original(recorded, state, capacity, grow, **kwargs)
 
-    window = jnp.zeros((3, 1, 1)) if axis == 0 else jnp.zeros((2, 3, 1, 1))
-    grow = lambda capacity, frame: float(jnp.max(frame)) + 7
-    out = _roll_in_chunks(run_chunk, window, 23, 10, 4, grow, axis=axis, progress=done.append)
-    assert out.shape == (23,) + window.shape[:axis] + window.shape[axis + 1 :]
-    flat = np.asarray(out).reshape(23, -1)
-    np.testing.assert_array_equal(flat, np.broadcast_to(np.arange(1.0, 24.0)[:, None], flat.shape))
-    # Overflows at t = 4, 11 and 18 (capacity 4 -> 11 -> 18 -> 25): every step once, those three twice.
-    assert calls == sorted(list(range(23)) + [4, 11, 18])
-    assert done == sorted(set(done)) and done[-1] == 23
-    with pytest.raises(RuntimeError, match="cannot grow"):
-        _roll_in_chunks(run_chunk, window, 23, 10, 4, lambda capacity, frame: capacity, axis=axis)
+    monkeypatch.setattr(simulator, "drive", spy)
+    return seen
 
 
-def test_traced_overflow_poisons_with_nan(params, inputs):
+@pytest.mark.parametrize("batched", [False, True])
+def test_the_host_loop_redoes_only_the_overflowing_steps(params, inputs, monkeypatch, batched):
     x, a = inputs
-    run = jax.jit(lambda p, x: rollout(p, x, a, 3, model_config=TINY, capacity=16))
-    out = run(params, x)
-    assert np.all(np.isnan(np.asarray(out)))
-    acc = jax.jit(lambda p, x: predict_acceleration(p, x, a, model_config=TINY, capacity=16))(params, x)
-    assert np.all(np.isnan(np.asarray(acc)))
+    seen = attempts_of(monkeypatch)
+    if batched:
+        small = rollout_batch(params, x[None], a[None], STEPS, model_config=TINY, capacity=16, chunk_size=5)[0]
+    else:
+        small = rollout(params, x, a, STEPS, model_config=TINY, capacity=16, chunk_size=5)
+    growths = sum(overflow for _, _, overflow in seen)
+    assert growths >= 1, "the capacity never overflowed: the test lost its purpose"
+    # No step is kept twice: every overflow costs one recomputed step, not a chunk.
+    assert sum(done for _, done, _ in seen) == STEPS
+    capacities = [capacity.edges for capacity, _, _ in seen]
+    assert capacities == sorted(capacities) and capacities[0] == 16
+    big = rollout(params, x, a, STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
+    np.testing.assert_allclose(np.asarray(small), np.asarray(big), rtol=0, atol=2e-6)
+
+
+def test_pure_cores_flag_an_overflow_and_poison_with_nan(params, inputs):
+    x, a = inputs
+    positions, overflow = jax.jit(lambda p, x: rollout_scan(p, x, a, 3, model_config=TINY, capacity=GraphCapacity(16)))(
+        params, x
+    )
+    assert np.all(np.isnan(np.asarray(positions))) and np.all(np.asarray(overflow))
+    step = jax.jit(lambda p, x: predict_step(p, x, a, model_config=TINY, capacity=16))(params, x)
+    assert bool(step.overflow) and np.all(np.isnan(np.asarray(step.acceleration)))
+    ok = jax.jit(lambda p, x: predict_step(p, x, a, model_config=TINY, capacity=CAP))(params, x)
+    assert not bool(ok.overflow) and np.all(np.isfinite(np.asarray(ok.position)))
+    with pytest.raises(ValueError, match="needs a graph capacity"):
+        rollout_scan(params, x, a, 3, model_config=TINY, capacity=None)
+
+
+def test_host_conveniences_name_the_pure_core_under_a_transformation(params, inputs):
+    x, a = inputs
+    with pytest.raises(ValueError, match="rollout_scan"):
+        jax.jit(lambda p, x: rollout(p, x, a, 3, model_config=TINY))(params, x)
+    with pytest.raises(ValueError, match="predict_step"):
+        jax.jit(lambda x: predict_position(params, x, a, model_config=TINY))(x)
 
 
 def test_vmap_over_padded_trajectories_equals_loop(params, inputs):
@@ -174,9 +199,9 @@ def test_vmap_over_padded_trajectories_equals_loop(params, inputs):
     xs = jnp.stack([x, jnp.pad(second, ((0, 0), (0, N - sizes[1]), (0, 0)))])
     radii = jnp.stack([a, jnp.pad(a[5 : 5 + sizes[1]], (0, N - sizes[1]))])
     masks = jnp.stack([jnp.ones(N, bool), jnp.arange(N) < sizes[1]])
-    batched = jax.jit(jax.vmap(lambda x, r, m: rollout(params, x, r, STEPS, model_config=TINY, mask=m, capacity=CAP)))(
-        xs, radii, masks
-    )
+    scan = lambda x, r, m: rollout_scan(params, x, r, STEPS, model_config=TINY, mask=m, capacity=CAP)
+    batched, overflow = jax.jit(jax.vmap(scan))(xs, radii, masks)
+    assert not np.any(np.asarray(overflow))
     for k, n in enumerate(sizes):
         single = rollout(params, xs[k, :, :n], radii[k, :n], STEPS, model_config=TINY, capacity=CAP, chunk_size=5)
         np.testing.assert_allclose(np.asarray(batched[k, :, :n]), np.asarray(single), rtol=0, atol=2e-6)
@@ -214,16 +239,16 @@ def test_rollout_is_differentiable(params, inputs):
     target = x[-1] + 0.01
 
     def loss(p, radius):
-        out = rollout(p, x, radius, 4, model_config=TINY, capacity=CAP)
+        out, _ = rollout_scan(p, x, radius, 4, model_config=TINY, capacity=CAP)
         return jnp.mean((out[-1] - target) ** 2)
 
     g_params, g_radius = jax.jit(jax.grad(loss, argnums=(0, 1)))(params, a)
     leaves = jax.tree_util.tree_leaves(g_params["network"])
-    assert all(np.all(np.isfinite(np.asarray(l))) for l in leaves)
-    assert any(float(jnp.max(jnp.abs(l))) > 0 for l in leaves)
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
+    assert any(float(jnp.max(jnp.abs(leaf))) > 0 for leaf in leaves)
     assert np.all(np.isfinite(np.asarray(g_radius))) and float(jnp.max(jnp.abs(g_radius))) > 0
     # Normalisation statistics are data, not weights.
-    assert all(float(jnp.max(jnp.abs(l))) == 0 for l in jax.tree_util.tree_leaves(g_params["normalization"]))
+    assert all(float(jnp.max(jnp.abs(leaf))) == 0 for leaf in jax.tree_util.tree_leaves(g_params["normalization"]))
 
 
 def test_bad_shapes_are_rejected(params, inputs):
@@ -260,19 +285,21 @@ def test_keep_inside_box_projects_onto_the_walls(inputs):
     assert np.any(np.isclose(boxed[..., 0], limit, atol=1e-6))
 
 
-def test_jit_sizes_the_graph_from_concrete_positions_also_with_the_cell_list():
-    # N >= CELL_LIST_MIN_PARTICLES: the default graph uses the cell list.
+def test_a_fitted_capacity_serves_the_pure_rollout_under_jit_also_with_the_cell_list():
+    # N above the cell-list threshold: the fitted capacity uses the cell list.
     n = 170
     x0 = np.random.default_rng(0).uniform(-0.9, 0.9, (n, 2)).astype(np.float32)
     frames = np.stack([x0 + 1e-3 * k for k in range(6)])
     radius = np.full((n,), 0.03, np.float32)
     params = init_params(jax.random.key(0), TINY)
-    eager = rollout(params, frames, radius, 3, model_config=TINY)
-    for given in (frames, jnp.asarray(frames)):
-        run = jax.jit(lambda p: rollout(p, given, radius, 3, model_config=TINY))
-        np.testing.assert_allclose(np.asarray(run(params)), np.asarray(eager), rtol=0, atol=1e-6)
-        # Sized from the positions, not all N^2 slots.
-        assert f"{n * n}" not in run.lower(params).as_text()
+    host = rollout(params, frames, radius, 3, model_config=TINY)
+    capacity = fit_capacity(frames[-1], TINY, margin=0.5)
+    assert capacity.cell is not None and capacity.edges < n * (n - 1)
+    run = jax.jit(lambda p: rollout_scan(p, frames, radius, 3, model_config=TINY, capacity=capacity))
+    positions, overflow = run(params)
+    assert not np.any(np.asarray(overflow))
+    np.testing.assert_allclose(np.asarray(positions), np.asarray(host), rtol=0, atol=1e-6)
+    assert f"{n * n}" not in run.lower(params).as_text()  # sized from the positions, not all N^2 slots
 
 
 def test_bad_values_are_rejected(params, inputs):
@@ -290,19 +317,11 @@ def test_bad_values_are_rejected(params, inputs):
 
 def test_rollouts_of_other_trajectories_reuse_the_compiled_capacities(params, monkeypatch):
     """Data-sized capacities go on the ladder, so two trajectories with different pair counts share them."""
-    from dispgns import simulator
     from dispgns.graph import host_count_pairs
 
     with np.load(DATA) as d:  # all 150 particles: enough pairs for capacities a rung apart
         x, a = jnp.asarray(d["positions"], jnp.float32), jnp.asarray(d["radius"], jnp.float32)
-    seen = []
-    real_chunk = simulator._rollout_chunk
-
-    def spy(*args, **kwargs):
-        seen.append(kwargs["capacity"])
-        return real_chunk(*args, **kwargs)
-
-    monkeypatch.setattr(simulator, "_rollout_chunk", spy)
+    seen = attempts_of(monkeypatch)
     # The same packing squeezed by 3 %: 1,412 and 1,476 pairs, capacities 1,600 and 1,664 off the ladder.
     windows = [x, x * 0.97]
     pairs = [int(host_count_pairs(w[-1], connectivity_radius=TINY.connectivity_radius)) for w in windows]
@@ -311,6 +330,6 @@ def test_rollouts_of_other_trajectories_reuse_the_compiled_capacities(params, mo
     for w, count in zip(windows, pairs):
         seen.clear()
         rollout(params, w, a, 4, model_config=TINY)
-        capacities.append(seen[0])
-        assert seen[0].edges >= count * 1.1  # still the head-room asked for
+        capacities.append(seen[0][0])
+        assert seen[0][0].edges >= count * 1.1  # still the head-room asked for
     assert capacities[0] == capacities[1]

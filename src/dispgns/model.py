@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dispgns import kernels as fused_kernels
-from dispgns._config import config_from_mapping
+from dispgns._config import check_fields, config_from_mapping
 from dispgns.features import edge_feature_size, node_feature_size
 from dispgns.graph import Bounds, as_bounds
 
@@ -106,21 +106,14 @@ class ModelConfig:
     keep_inside_box: bool = False
 
     def __post_init__(self):
-        minima = dict(
-            latent_size=1, hidden_size=1, message_passing_steps=1, dim=1, hidden_layers=0, input_sequence_length=2
+        check_fields(
+            self,
+            integers=dict(
+                latent_size=1, hidden_size=1, message_passing_steps=1, dim=1, hidden_layers=0, input_sequence_length=2
+            ),
+            positive=("connectivity_radius", "boundary_clip", "layer_norm_epsilon"),
+            choices={"activation": _ACTIVATIONS, "matmul_dtype": _MATMUL_DTYPES, "kernels": _KERNELS},
         )
-        for name, low in minima.items():
-            value = getattr(self, name)
-            if int(value) != value or value < low:
-                raise ValueError(f"ModelConfig.{name} must be an integer >= {low}, got {value!r}")
-        for name, allowed in (("activation", _ACTIVATIONS), ("matmul_dtype", _MATMUL_DTYPES), ("kernels", _KERNELS)):
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"ModelConfig.{name} must be one of {sorted(allowed)}, got {getattr(self, name)!r}")
-        if not (self.connectivity_radius > 0) or not (self.boundary_clip > 0):
-            raise ValueError(
-                "ModelConfig.connectivity_radius and boundary_clip must be > 0, got "
-                f"{self.connectivity_radius!r} and {self.boundary_clip!r}"
-            )
         # Normalise lists (e.g. from YAML/JSON) into the hashable tuple form.
         bounds = ((-1.0, 1.0),) * int(self.dim) if self.bounds is None else self.bounds
         object.__setattr__(self, "bounds", as_bounds(bounds, self.dim))

@@ -65,6 +65,7 @@ __all__ = [
     "rollout_batch",
     "rollout_scan",
     "sanitize",
+    "steps_until_overflow",
 ]
 
 

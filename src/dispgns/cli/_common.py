@@ -36,6 +36,13 @@ def cpu_tuned(args) -> bool:
     return not getattr(args, "no_tuning", False)
 
 
+def compute_config(args, model_config):
+    """The model config the command computes with: the CPU kernels unless ``--no-tuning`` (same function)."""
+    from dispgns import tuning
+
+    return tuning.tuned_model_config(model_config) if cpu_tuned(args) else model_config
+
+
 def network_options(args, model_config) -> dict:
     """XLA options for the network's compiled loops (``{}`` with ``--no-tuning``)."""
     from dispgns import tuning
@@ -71,11 +78,14 @@ def add_model_argument(parser) -> None:
 
 
 def load_model_argument(args):
-    """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: shipped model)."""
+    """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: shipped model).
+
+    The config is the one to compute with (:func:`compute_config`).
+    """
     params, model_config, info = _load(args)
     if getattr(args, "keep_inside_box", None) is not None:
         model_config = dataclasses.replace(model_config, keep_inside_box=args.keep_inside_box == "on")
-    return params, model_config, info
+    return params, compute_config(args, model_config), info
 
 
 def _load(args):

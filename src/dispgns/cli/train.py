@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import network_options, sigterm_as_interrupt
+from dispgns.cli._common import compute_config, network_options, sigterm_as_interrupt
 
 # Training fields that may change when a run is resumed: they decide how long
 # and how often, not what is learned.
@@ -289,12 +289,14 @@ def run(args: argparse.Namespace) -> int:
             f"{Path(args.data) / 'metadata.json'}: 'bounds' is {metadata.bounds}, but the model has "
             f"bounds = {model_config.bounds}"
         )
+    # Saved and exported: model_config; computed with: its CPU kernels unless --no-tuning (same function).
+    compute = compute_config(args, model_config)
     try:
         stream = BatchStream.for_training(train_trajectories, model_config, train_config)
     except ValueError as error:
         raise CLIError(f"{Path(args.data) / 'train.h5'}: {error}") from None
     options = network_options(args, model_config)
-    validator = Validator(valid, model_config, train_config, compiler_options=options) if valid else None
+    validator = Validator(valid, compute, train_config, compiler_options=options) if valid else None
 
     dataset_info = {
         "path": str(Path(args.data).absolute()),
@@ -306,7 +308,7 @@ def run(args: argparse.Namespace) -> int:
     }
     config = run_config(model_config, train_config, normalization, dataset_info)
     init_key, key = jax.random.split(jax.random.key(train_config.seed))
-    state = create_train_state(init_key, model_config, train_config, normalization)
+    state = create_train_state(init_key, compute, train_config, normalization)
     # Everything is validated: only now is the run directory created or changed.
     if not args.resume:
         _create_run_dir(run_dir, overwrite=args.overwrite)
