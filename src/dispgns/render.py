@@ -34,6 +34,17 @@ from matplotlib.patches import Rectangle
 
 from dispgns.files import atomic_path
 
+__all__ = [
+    "ffmpeg_executable",
+    "frame_grid",
+    "plot_error_curves",
+    "plot_rollout_errors",
+    "plot_training_curve",
+    "rollout_animation",
+    "save_figure",
+    "save_rollout_animation",
+]
+
 _PAD = 0.04  # margin around the box, in box units
 
 

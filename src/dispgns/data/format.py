@@ -42,6 +42,27 @@ from dispgns import files
 from dispgns.files import atomic_path, write_atomic
 from dispgns.physics import PhysicsConfig
 
+__all__ = [
+    "BOX_TOLERANCE",
+    "DatasetError",
+    "DatasetMetadata",
+    "FORMAT_VERSION",
+    "INITIAL_STATE_TOLERANCE",
+    "METADATA_FILE",
+    "SPLITS",
+    "Trajectory",
+    "load_dataset",
+    "radii_groups",
+    "read_metadata",
+    "read_split",
+    "split_filename",
+    "staged_directory",
+    "trajectory_name",
+    "validate_trajectory",
+    "write_metadata",
+    "write_split",
+]
+
 FORMAT_VERSION = 1
 SPLITS = ("train", "valid", "test", "test_unseen")
 METADATA_FILE = "metadata.json"

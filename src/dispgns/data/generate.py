@@ -54,6 +54,23 @@ from dispgns.physics import (
 )
 from dispgns.tuning import thresholds
 
+__all__ = [
+    "DatasetSpec",
+    "KEY_DERIVATION",
+    "LANES",
+    "PAPER_TRAIN_RADII_M",
+    "PRESETS",
+    "RadiiGroup",
+    "SPLIT_IDS",
+    "generate_dataset",
+    "paper_spec",
+    "plan_batches",
+    "preset",
+    "sample_initial_states",
+    "tiny_spec",
+    "trajectory_key",
+]
+
 SPLIT_IDS = {"train": 0, "valid": 1, "test": 2, "test_unseen": 3}
 KEY_DERIVATION = "fold_in(fold_in(jax.random.PRNGKey(seed), split_ids[split]), index)"
 

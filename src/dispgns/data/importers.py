@@ -33,6 +33,13 @@ from dispgns.data.format import (
 )
 from dispgns.physics import PhysicsConfig
 
+__all__ = [
+    "SOURCE",
+    "UntrustedPickleError",
+    "import_authors_npz",
+    "read_authors_npz",
+]
+
 SOURCE = "authors_npz"
 
 

@@ -14,6 +14,16 @@ from jax import lax
 from dispgns.physics.config import PhysicsConfig
 from dispgns.tuning import thresholds
 
+__all__ = [
+    "external_force",
+    "interaction_force",
+    "neighbor_force",
+    "neighbor_table",
+    "pair_force_over_distance",
+    "particle_mass",
+    "particle_volume",
+]
+
 
 def particle_volume(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp.ndarray:
     """Volume in m^3 of each particle; ``radius`` is ``(N,)`` in m.

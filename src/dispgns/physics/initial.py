@@ -13,6 +13,14 @@ from jax import lax
 
 from dispgns.physics.config import PhysicsConfig
 
+__all__ = [
+    "InitialState",
+    "PlacementError",
+    "particle_count_range",
+    "place_particles",
+    "sample_initial_state",
+]
+
 
 class InitialState(NamedTuple):
     """A sampled initial state.

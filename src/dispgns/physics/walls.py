@@ -20,6 +20,11 @@ from jax import lax
 
 from dispgns.physics.config import PhysicsConfig
 
+__all__ = [
+    "WallResult",
+    "resolve_walls",
+]
+
 # force_at(query (Q, D), query_index (Q,)) -> (Q, D): interaction force in N
 # on particle query_index[q] placed at query[q], all others where they started.
 ForceAtFn = Callable[[jnp.ndarray, jnp.ndarray], jnp.ndarray]

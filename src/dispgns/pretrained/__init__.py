@@ -10,6 +10,12 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
+__all__ = [
+    "DEFAULT_MODEL",
+    "load_pretrained",
+    "pretrained_path",
+]
+
 DEFAULT_MODEL = "paper"
 
 

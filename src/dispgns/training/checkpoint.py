@@ -44,6 +44,28 @@ from dispgns.files import staged_directory, write_atomic
 from dispgns.model import ModelConfig, init_params
 from dispgns.training.step import TrainConfig, TrainState, create_train_state
 
+__all__ = [
+    "BEST_DIR",
+    "CHECKPOINT_DIR",
+    "CONFIG_FILE",
+    "CheckpointError",
+    "Checkpointer",
+    "JsonlLog",
+    "LOG_FILE",
+    "MODEL_DIR",
+    "MODEL_FILE",
+    "MODEL_FORMAT_VERSION",
+    "PARAMS_FILE",
+    "configs_from",
+    "export_model",
+    "load_model",
+    "load_params",
+    "read_json",
+    "restore_template",
+    "run_config",
+    "write_json",
+]
+
 CONFIG_FILE = "config.json"
 LOG_FILE = "log.jsonl"
 CHECKPOINT_DIR = "checkpoints"

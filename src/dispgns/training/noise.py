@@ -8,6 +8,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+__all__ = [
+    "random_walk_noise",
+    "target_acceleration",
+]
+
 
 def random_walk_noise(key: jax.Array, position_seq: jnp.ndarray, noise_std: float, mask=None) -> jnp.ndarray:
     """Random-walk noise for a sequence of input positions (DeepMind's GNS recipe).
