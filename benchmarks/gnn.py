@@ -28,12 +28,17 @@ minute (``rollout_over_floor`` is the ratio). ``*_at_fma_peak`` and
 (``benchmarks/cpu_peak.py``): no software can beat that time, and the
 fraction needed for the 15 ms target is what the whole step, gathers and
 LayerNorms included, would have to reach. ``page_faults_per_train_step``
-shows whether :func:`dispgns.tune_host_allocator` is in effect (near 0) or
+shows whether :func:`dispgns.tuning.tune_host_allocator` is in effect (near 0) or
 not (~125,000 for the paper network). ``edge_mlp_fraction_of_matmul`` compares
 a stack of per-edge MLPs (forward + backward) with an edge-sized matmul timed
 in alternation with it; ``edge_mlp_fraction_of_large_matmul`` with the
 2048^2 matmul. Matmuls and MLP stacks are compiled with
-:func:`dispgns.network_compiler_options` of their dtype, as the network is.
+:func:`dispgns.tuning.network_compiler_options` of their dtype, as the network is.
+
+The network runs with dispgns.tuning's settings, as the command line does
+(host allocator, ``tuned_model_config``: the fused CPU kernels, and
+``network_compiler_options``); ``--no-tuning`` measures what a plain
+``import dispgns`` gets.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ import json
 import os
 import platform
 import resource
+import sys
 import time
 from pathlib import Path
 
@@ -52,14 +58,21 @@ import jax.numpy as jnp
 import numpy as np
 from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 
+from dispgns import tuning  # the package imports lazily: nothing of JAX has started yet
+
+# First, before jax-md's import starts JAX's CPU backend: the host allocator (``--no-tuning``: none).
+TUNED = "--no-tuning" not in sys.argv[1:]
+if TUNED:
+    tuning.tune_host_allocator()
+
 import dispgns
-from dispgns.training.batches import BatchStream
-from dispgns.graph import capacity_for, host_count_pairs
+from dispgns.graph import host_count_pairs
 from dispgns.kernels import MLP
 from dispgns.model import ModelConfig, count_parameters
 from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
-from dispgns.simulator import _rollout_chunk
+from dispgns.simulator import fit_capacity, rollout_scan
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
+from dispgns.training.batches import BatchStream
 from dispgns.training.checkpoint import load_model
 
 RADII_MM = (2.25, 3.25, 3.75, 4.75)
@@ -138,7 +151,8 @@ def machine_info() -> dict:
         "jax": jax.__version__,
         "devices": [str(d) for d in jax.devices()],
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "host_allocator_tuned": dispgns.runtime.host_allocator_tuned(),
+        "host_allocator_tuned": tuning.host_allocator_tuned(),
+        "tuned": TUNED,
     }
 
 
@@ -163,7 +177,12 @@ def trajectories(n_particles: int, frames: int, seeds=(0, 1)):
 def network_options(dtype) -> dict:
     """The XLA options the network's jits use for this matmul dtype (so floors and network share kernels)."""
     name = "float32" if jnp.dtype(dtype) == jnp.float32 else "bfloat16"
-    return dispgns.network_compiler_options(ModelConfig(matmul_dtype=name)) if jax.default_backend() == "cpu" else {}
+    return tuning.network_compiler_options(ModelConfig(matmul_dtype=name)) if TUNED else {}
+
+
+def computed(model_config: ModelConfig) -> ModelConfig:
+    """The config the network is computed with: the fused CPU kernels when tuned (same function)."""
+    return tuning.tuned_model_config(model_config) if TUNED else model_config
 
 
 def matmul_rate(m: int, k: int, n: int, dtype=jnp.float32) -> float:
@@ -290,7 +309,8 @@ def run(
     Untrained weights move particles unphysically, so a long rollout with them
     can pack far more edges than real data (capacity grows, steps get dearer).
     """
-    model_config = ModelConfig(matmul_dtype=dtype) if model_config is None else model_config
+    model_config = computed(ModelConfig(matmul_dtype=dtype) if model_config is None else model_config)
+    options = network_options(jnp.float32 if dtype == "float32" else jnp.bfloat16)
     train_config = TrainConfig()
     norm = compute_normalization(trajs, noise_std=train_config.noise_std)
     state = create_train_state(jax.random.key(0), model_config, train_config, norm)
@@ -302,7 +322,7 @@ def run(
     pairs = stream.pairs[ids]
     key = jax.random.key(0)
 
-    compiled = train_step.lower(state, batch, key).compile()
+    compiled = tuning.jitted(train_step, options).lower(state, batch, key).compile()
     flops_xla = xla_flops(compiled)
     train_wall, train_cpu = timed(lambda: compiled(state, batch, key), args.repeats)
     nodes = batch.node_budget
@@ -314,14 +334,13 @@ def run(
     window = jnp.asarray(traj.position[start - 100 : start - 94])
     radius = jnp.asarray(traj.radius)
     mask = jnp.ones(radius.shape, bool)
-    capacity = capacity_for(traj.position[start - 100 :], connectivity_radius=0.2, margin=0.05)
+    capacity = fit_capacity(traj.position[start - 100 :], model_config)
     params = state.params if rollout_params is None else rollout_params
     steps = args.rollout_steps
-    # What dispgns.rollout runs between its overflow checks, called directly (not inside another
-    # jit) so that it compiles with dispgns.network_compiler_options.
-    chunk = lambda p, w: _rollout_chunk(
-        p, w, radius, mask, jnp.int32(steps), length=steps, capacity=capacity, model_config=model_config
-    )
+    # The pure rollout, compiled with the network's options: what dispgns.rollout runs between
+    # its overflow checks.
+    scan = tuning.jitted(rollout_scan, options, static_argnames=("n_steps", "model_config", "capacity"))
+    chunk = lambda p, w: scan(p, w, radius, n_steps=steps, model_config=model_config, capacity=capacity, mask=mask)
     n_real = int(radius.shape[0])
     flops_rollout = network_flops(model_config, n_real, capacity.edges + n_real)
     # The machine drifts within a minute: the rollout chunk (about a second)
@@ -329,9 +348,11 @@ def run(
     chain, chain_flops = matmul_chain(
         capacity.edges + n_real, model_config.latent_size, jnp.float32 if dtype == "float32" else jnp.bfloat16
     )
-    _, _, taken, overflow = jax.block_until_ready(chunk(params, window))
-    if bool(overflow):
-        raise SystemExit(f"the timed rollout chunk outgrew its graph capacity ({capacity}) at step {int(taken)}")
+    _, overflow = jax.block_until_ready(chunk(params, window))
+    if bool(np.any(overflow)):
+        raise SystemExit(
+            f"the timed rollout chunk outgrew its graph capacity ({capacity}) at step {int(np.argmax(overflow))}"
+        )
     jax.block_until_ready(chain())
     roll_walls, roll_cpus, chain_walls = [], [], []
     for _ in range(7):
@@ -350,9 +371,12 @@ def run(
     full = full_pairs = None
     if args.full:
         x0 = jnp.asarray(traj.position[:6])
-        dispgns.rollout(params, x0, radius, 494, model_config=model_config)  # compile
+        full_rollout = lambda: dispgns.rollout(
+            params, x0, radius, 494, model_config=model_config, compiler_options=options
+        )
+        full_rollout()  # compile
         t = time.perf_counter()
-        predicted = jax.block_until_ready(dispgns.rollout(params, x0, radius, 494, model_config=model_config))
+        predicted = jax.block_until_ready(full_rollout())
         full = time.perf_counter() - t
         # The graphs the rollout met (the ground truth's grow as the bed settles): the cost of a
         # step follows them.
@@ -436,9 +460,9 @@ def main():
         help="a trained paper-size model directory whose weights drive the rollouts "
         "(default: benchmarks/data/paper_network; 'none': untrained weights)",
     )
+    parser.add_argument("--no-tuning", action="store_true", help="plain import dispgns: no opt-in speed settings")
     args = parser.parse_args()
     args.full = not args.quick
-
     report = {"machine": machine_info()}
     trajs = trajectories(220, 110)
     report["pairs_last_frame"] = [int(host_count_pairs(t.position[-1], connectivity_radius=0.2)) for t in trajs]

@@ -14,7 +14,7 @@ Variants: ``old`` (``src/dispgns/model.py`` of git revision ``--old``, the
 last one before the network and its CPU kernels were split, imported as a
 separate module), ``fused`` and ``plain`` (``ModelConfig.kernels``). All are
 float32, jitted with the XLA options the project uses for the float32
-network on CPU (:func:`dispgns.network_compiler_options`), and fed the same
+network on CPU (:func:`dispgns.tuning.network_compiler_options`), and fed the same
 weights.
 
 The machine's speed drifts by 15-30 % within minutes and other work runs on

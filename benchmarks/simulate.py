@@ -11,7 +11,11 @@ Measures, after compilation and as the median of several runs:
   at N = 2,000, 20,000 and 100,000, at the area fraction of the paper's
   settled bed, and the implied Euler steps per second.
 
-Usage: python benchmarks/simulate.py [--quick] [--skip-dataset]
+The physics runs with dispgns.tuning's settings, as the command line does
+(the host allocator, ``physics_compiler_options()``); ``--no-tuning``
+measures what a plain ``import dispgns`` gets.
+
+Usage: python benchmarks/simulate.py [--quick] [--skip-dataset] [--no-tuning]
 """
 
 from __future__ import annotations
@@ -31,8 +35,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dispgns import tuning  # the package imports lazily: nothing of JAX has started yet
+
+# First, before jax-md's import starts JAX's CPU backend: the host allocator (``--no-tuning``: none).
+TUNED = "--no-tuning" not in sys.argv[1:]
+if TUNED:
+    tuning.tune_host_allocator()
+
 from dispgns import PhysicsConfig, sample_initial_state, simulate, simulate_batch
-from dispgns.runtime import host_allocator_tuned
+
+# The physics' XLA options (set in main(); {} with --no-tuning).
+OPTIONS: dict = {}
 
 AUTHORS_NUMPY_STEP_MS = 10.8  # measured on this 2-core machine, N = 220
 PAPER_RADII = np.arange(2.0, 5.01, 0.5) * 1e-3
@@ -48,8 +61,20 @@ def machine_info() -> dict:
         "python": platform.python_version(),
         "jax": jax.__version__,
         "device": str(jax.devices()[0]),
-        "host_allocator_tuned": host_allocator_tuned(),
+        "cpu": cpu_model(),
+        "host_allocator_tuned": tuning.host_allocator_tuned(),
+        "compiler_options": OPTIONS,
     }
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def median_seconds(run, repeats: int) -> float:
@@ -73,7 +98,9 @@ def euler_step_ms(repeats: int, frames: int) -> float:
     config = PhysicsConfig()
 
     def run():
-        simulate(state.position, state.velocity, state.radius, config, n_frames=frames + 1).block_until_ready()
+        simulate(
+            state.position, state.velocity, state.radius, config, n_frames=frames + 1, compiler_options=OPTIONS
+        ).block_until_ready()
 
     return 1e3 * median_seconds(run, repeats) / (frames * 15)
 
@@ -87,7 +114,7 @@ def batch_step_ms(repeats: int, frames: int, batch: int = 40) -> float:
     config = PhysicsConfig()
 
     def run():
-        simulate_batch(x, v, a, mask, config, n_frames=frames + 1).block_until_ready()
+        simulate_batch(x, v, a, mask, config, n_frames=frames + 1, compiler_options=OPTIONS).block_until_ready()
 
     return 1e3 * median_seconds(run, repeats) / (frames * 15 * batch)
 
@@ -129,8 +156,10 @@ def particle_step_ns(sizes, repeats: int, frames: int) -> dict:
         config = PhysicsConfig(box_half_size=half, cutoff=2 * 2 * float(PAPER_RADII.max()))
         velocity = np.zeros_like(position)
 
-        def run():
-            simulate(position, velocity, radius, config, n_frames=frames + 1, save_every=15).block_until_ready()
+        def run(position=position, velocity=velocity, radius=radius, config=config):
+            simulate(
+                position, velocity, radius, config, n_frames=frames + 1, save_every=15, compiler_options=OPTIONS
+            ).block_until_ready()
 
         seconds = median_seconds(run, repeats)
         results[n] = {
@@ -147,6 +176,7 @@ def paper_dataset_seconds() -> float | None:
             sys.executable,
             "-m",
             "dispgns",
+            *(["--no-tuning"] if not OPTIONS else []),
             "generate",
             "--preset",
             "paper",
@@ -168,7 +198,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats and sizes (smoke run)")
     parser.add_argument("--skip-dataset", action="store_true", help="do not time the paper dataset generation")
+    parser.add_argument("--no-tuning", action="store_true", help="plain import dispgns: no opt-in speed settings")
     args = parser.parse_args()
+    global OPTIONS
+    if TUNED:
+        OPTIONS = tuning.physics_compiler_options()
     repeats = 3 if args.quick else 5
     sizes = [2000, 20000] if args.quick else [2000, 20000, 100000]
 

@@ -3,6 +3,8 @@
 import subprocess
 import sys
 
+import pytest
+
 import dispgns
 
 
@@ -11,12 +13,8 @@ def test_every_public_name_resolves_and_unknown_names_fail():
         assert getattr(dispgns, name) is not None, name
     assert set(dispgns.__all__) <= set(dir(dispgns))
     assert dispgns.rollout is __import__("dispgns.simulator", fromlist=["rollout"]).rollout
-    try:
+    with pytest.raises(AttributeError, match="not_a_name"):
         dispgns.not_a_name
-    except AttributeError as error:
-        assert "not_a_name" in str(error)
-    else:
-        raise AssertionError("an unknown attribute must raise AttributeError")
 
 
 def test_import_and_cli_help_do_not_load_jax_md():

@@ -31,6 +31,7 @@ import contextlib
 import ctypes
 import dataclasses
 import functools
+import os
 import sys
 import warnings
 from collections.abc import Iterator, Mapping
@@ -57,7 +58,15 @@ _M_ARENA_MAX = -8
 _allocator_tuned = False
 
 
-def tune_host_allocator(keep_free_bytes: int = 1 << 30) -> bool:
+def _threads() -> int:
+    """OS threads of this process (Linux), 0 when unknown."""
+    try:
+        return len(os.listdir("/proc/self/task"))
+    except OSError:
+        return 0
+
+
+def tune_host_allocator(keep_free_bytes: int = 1 << 30, *, warn_if_late: bool = True) -> bool:
     """Keep XLA:CPU's per-execution buffers in glibc's heap (no fresh pages per call); process-wide.
 
     Sets, with glibc's ``mallopt``: one malloc arena for all threads (XLA's
@@ -67,13 +76,17 @@ def tune_host_allocator(keep_free_bytes: int = 1 << 30) -> bool:
     ``keep_free_bytes`` of freed memory stays with the process instead of
     going back to the system.
 
-    Call it before the first JAX computation of the process: threads that
-    already allocated keep their own arenas, and the gain is then partial.
-    Safe to call more than once; a no-op returning ``False`` off Linux/glibc.
+    Call it before JAX starts its CPU backend (the first computation, or
+    importing jax-md, which computes at import; ``import dispgns`` alone does
+    not): threads that already allocated keep their own arenas, and the gain
+    is then partial. Safe to call more than once; a no-op returning ``False``
+    off Linux/glibc.
 
     Args:
       keep_free_bytes: freed memory at the top of the heap that is kept for
         reuse (1 GiB; at most 2**31 - 1).
+      warn_if_late: warn when the process already runs more threads than
+        ``import jax`` starts (a sign that XLA's thread pools exist).
 
     Returns:
       ``True`` if the settings are in effect (now or from an earlier call).
@@ -92,6 +105,15 @@ def tune_host_allocator(keep_free_bytes: int = 1 << 30) -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    threads = _threads()
+    if warn_if_late and threads > 2:
+        warnings.warn(
+            f"dispgns.tuning.tune_host_allocator() called with {threads} threads running (JAX's CPU backend has "
+            "probably started): threads that already allocated keep their own arenas, so the gain may be partial. "
+            "Call it first, before any JAX computation or jax-md import.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     settings = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, int(keep_free_bytes)))
     _allocator_tuned = all(mallopt(param, value) == 1 for param, value in settings)
     return _allocator_tuned
