@@ -14,7 +14,7 @@ def test_every_public_name_resolves_and_unknown_names_fail():
     assert set(dispgns.__all__) <= set(dir(dispgns))
     assert dispgns.rollout is __import__("dispgns.simulator", fromlist=["rollout"]).rollout
     with pytest.raises(AttributeError, match="not_a_name"):
-        dispgns.not_a_name
+        _ = dispgns.not_a_name
 
 
 def test_import_and_cli_help_do_not_load_jax_md():
