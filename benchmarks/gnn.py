@@ -61,8 +61,9 @@ from cpu_peak import fma_peak  # benchmarks/cpu_peak.py, beside this script
 from dispgns import tuning  # the package imports lazily: nothing of JAX has started yet
 
 # First, before jax-md's import starts JAX's CPU backend: the host allocator (``--no-tuning``: none).
+# Scripts that import this one decide for themselves.
 TUNED = "--no-tuning" not in sys.argv[1:]
-if TUNED:
+if TUNED and __name__ == "__main__":
     tuning.tune_host_allocator()
 
 import dispgns
@@ -152,7 +153,6 @@ def machine_info() -> dict:
         "devices": [str(d) for d in jax.devices()],
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "host_allocator_tuned": tuning.host_allocator_tuned(),
-        "tuned": TUNED,
     }
 
 
@@ -463,7 +463,7 @@ def main():
     parser.add_argument("--no-tuning", action="store_true", help="plain import dispgns: no opt-in speed settings")
     args = parser.parse_args()
     args.full = not args.quick
-    report = {"machine": machine_info()}
+    report = {"machine": machine_info(), "tuned": TUNED}
     trajs = trajectories(220, 110)
     report["pairs_last_frame"] = [int(host_count_pairs(t.position[-1], connectivity_radius=0.2)) for t in trajs]
     report["matmul_gflops_per_s"] = matmul_rate(2048, 2048, 2048)

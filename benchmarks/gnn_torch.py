@@ -38,10 +38,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import torch
-from gnn import machine_info, trajectories  # tunes the host allocator first, as the command line does
-from torch import nn
 
 from dispgns import tuning
+
+tuning.tune_host_allocator()  # before jax-md's import (in gnn) starts JAX's CPU backend, as the command line does
+
+from gnn import machine_info, trajectories
+from torch import nn
+
 from dispgns.model import ModelConfig
 from dispgns.simulator import fit_capacity, rollout_scan
 from dispgns.training import BatchStream, TrainConfig, compute_normalization, create_train_state, train_step
