@@ -2,12 +2,13 @@
 
 They keep the parameters and the function of the plain network (equal to
 float32 rounding: other summation orders), and are faster with XLA on CPU.
-What each one measured when it was added (2-core AMD EPYC of
-``benchmarks/``, in-process A/B runs of the paper network):
+What each one measured when it was added (in-process A/B runs of the paper
+network on the 2-core AMD EPYC of ``benchmarks/``, the first on the earlier
+2-core Intel machine):
 
 * :func:`_matmul_bf16`: the bfloat16 matmul with a backward that hands
   XLA:CPU operands in the layout its bfloat16 dot is fast with (bfloat16
-  training step ~409 -> 278 ms).
+  training step ~409 -> 278 ms, Intel).
 * :class:`MLP` folds its LayerNorm's centring into the kernel and bias of the
   layer before it, and :func:`_row_mean` takes row means as matrix-vector
   products: one reduction and one pass fewer per LayerNorm (rollout step

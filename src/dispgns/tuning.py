@@ -135,7 +135,8 @@ def physics_compiler_options() -> dict[str, Any]:
 
     XLA on CPU vectorises loops 256 bits wide unless told otherwise (some
     older CPUs lower their clock for 512-bit instructions). The physics' pair
-    loops are ~1.6x faster at 512 bits on AVX-512 machines; CPUs without
+    loops were ~2x faster at 512 bits on the AVX-512 Intel machine where this
+    was measured, ~1.1x on the AMD EPYC of ``benchmarks/``; CPUs without
     AVX-512 keep their widest registers.
 
     Pass them to a host driver (``dispgns.simulate(..., compiler_options=...)``)
@@ -220,8 +221,8 @@ def tuned_model_config(model_config):
 class Thresholds:
     """Sizes at which one algorithm overtakes another (speed only: every choice gives the same result).
 
-    Measured on the 2-core AMD EPYC machine of ``benchmarks/``; another
-    machine may prefer other values (:func:`use_thresholds`).
+    Measured on a 2-core Intel machine when they were set (``benchmarks/README.md``);
+    another machine may prefer other values (:func:`use_thresholds`).
 
     Attributes:
       cell_list_min_particles: from this many particle slots on, learned-
