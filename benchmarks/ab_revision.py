@@ -32,7 +32,6 @@ import re
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from dispgns import tuning  # the package imports lazily: nothing of JAX has started yet
@@ -42,7 +41,7 @@ tuning.tune_host_allocator()  # first, before jax-md's import starts JAX's CPU b
 import jax
 import jax.numpy as jnp
 import numpy as np
-from gnn import PAPER_NETWORK, machine_info, trajectories
+from gnn import PAPER_NETWORK, machine_info, seconds, trajectories
 
 import dispgns
 from dispgns.simulator import fit_capacity, rollout_scan
@@ -72,12 +71,6 @@ def import_revision(revision: str, where: Path):
             target.write_bytes(data)
     sys.path.insert(0, str(where))
     return importlib.import_module("dispgns_old")
-
-
-def timed(fn) -> float:
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    return time.perf_counter() - start
 
 
 def main():
@@ -188,7 +181,7 @@ def run(old, args) -> dict:
         for name, (old_fn, new_fn, units) in work.items():
             pair = [(0, old_fn), (1, new_fn)] if r % 2 == 0 else [(1, new_fn), (0, old_fn)]
             for which, fn in pair:
-                times[name][which].append(timed(fn) / units)
+                times[name][which].append(seconds(fn) / units)
     report = {"benchmark": "ab_revision", "old": args.old, "rounds": args.rounds, "machine": machine_info()}
     for name, (old_times, new_times) in times.items():
         ratio = np.asarray(new_times) / np.asarray(old_times)

@@ -138,6 +138,13 @@ def timed(fn, repeats: int):
     return float(np.median(walls)), float(np.median(cpus))
 
 
+def seconds(fn) -> float:
+    """Wall seconds of one call of ``fn()``, its result blocked on."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    return time.perf_counter() - start
+
+
 def machine_info() -> dict:
     cpu = platform.processor()
     try:

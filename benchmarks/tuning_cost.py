@@ -21,7 +21,6 @@ import argparse
 import json
 import resource
 import sys
-import time
 
 from dispgns import tuning  # the package imports lazily: nothing of JAX has started yet
 
@@ -32,18 +31,12 @@ if ALLOCATOR:
 import jax
 import jax.numpy as jnp
 import numpy as np
-from gnn import PAPER_NETWORK, machine_info, trajectories
+from gnn import PAPER_NETWORK, machine_info, seconds, trajectories
 
 import dispgns
 from dispgns.simulator import fit_capacity, rollout_scan
 from dispgns.training import BatchStream, TrainConfig, compute_normalization, create_train_state, train_step
 from dispgns.training.checkpoint import load_model
-
-
-def timed(fn) -> float:
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    return time.perf_counter() - start
 
 
 def main():
@@ -101,7 +94,7 @@ def main():
     for r in range(args.rounds):
         for kind, (fns, units) in work.items():
             for name in ("plain", "tuned") if r % 2 == 0 else ("tuned", "plain"):
-                times[kind, name].append(timed(fns[name]) / units)
+                times[kind, name].append(seconds(fns[name]) / units)
     report = {
         "benchmark": "tuning_cost",
         "rounds": args.rounds,

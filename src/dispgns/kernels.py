@@ -19,9 +19,10 @@ network on the 2-core AMD EPYC of ``benchmarks/``, the first on the earlier
 * :class:`LayerNorm`: a hand-written backward that skips the centring terms
   the fold provides and keeps XLA from materialising per-edge broadcasts.
 
-:class:`MLP` has the interface the network code of :mod:`dispgns.model` uses
-with either implementation: ``layers[k].kernel``, ``layers[k].bias``,
-``layers[k].dot(x, kernel)``, ``__call__(x)`` and ``after_first(h)``.
+:class:`MLP` extends :class:`dispgns.model.MLP` (the network code uses either
+through the same interface: ``layers[k].kernel``, ``layers[k].bias``,
+``layers[k].dot(x, kernel)``, ``__call__(x)`` and ``after_first(h)``);
+:mod:`dispgns.model` imports this module only when a config asks for it.
 ``benchmarks/model_kernels.py`` times the network with them and without
 (float32, paper size; two runs, medians of per-round ratios): the plain
 network takes 1.03-1.08x their time for a rollout-sized forward pass and
@@ -31,13 +32,14 @@ network takes 1.03-1.08x their time for a rollout-sized forward pass and
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
-from typing import Any
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+from dispgns.model import MLP as PlainMLP
+from dispgns.model import Dense
 
 __all__ = ["LayerNorm", "Linear", "MLP"]
 
@@ -81,32 +83,13 @@ def _matmul_bf16_bwd(residuals, dy):
 _matmul_bf16.defvjp(_matmul_bf16_fwd, _matmul_bf16_bwd)
 
 
-class Linear(nn.Module):
-    """``x (..., in_features) @ kernel + bias`` with the kernel declared at setup (params ``kernel``, ``bias``).
-
-    ``matmul_dtype``: ``None`` (float32) or ``jnp.bfloat16`` (inputs rounded,
-    float32 accumulation; 2-D inputs through :func:`_matmul_bf16`).
-    """
-
-    in_features: int
-    features: int
-    matmul_dtype: Any = None
-
-    def setup(self):
-        self.kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.in_features, self.features))
-        self.bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
+class Linear(Dense):
+    """:class:`dispgns.model.Dense` with bfloat16 products of 2-D inputs through :func:`_matmul_bf16`."""
 
     def dot(self, x, kernel):
-        if self.matmul_dtype is None:
-            return jnp.dot(x, kernel)
-        if x.ndim == 2:
-            return _matmul_bf16(x, kernel)
-        return jnp.dot(
-            x.astype(self.matmul_dtype), kernel.astype(self.matmul_dtype), preferred_element_type=jnp.float32
-        ).astype(x.dtype)
-
-    def __call__(self, x):
-        return self.dot(x, self.kernel) + self.bias
+        if self.matmul_dtype is not None and x.ndim == 2:
+            return _matmul_bf16(x, kernel).astype(x.dtype)
+        return super().dot(x, kernel)
 
 
 def _row_mean(x):
@@ -189,41 +172,20 @@ class LayerNorm(nn.Module):
         return _layer_norm(x, scale.astype(x.dtype), bias.astype(x.dtype), self.epsilon, centred)
 
 
-class MLP(nn.Module):
-    """``(..., in_features) -> (..., out_features)``: ``hidden`` layers, ``activation`` between layers, LayerNorm.
+class MLP(PlainMLP):
+    """:class:`dispgns.model.MLP` (same parameters, same function) with the fused LayerNorm and :class:`Linear`."""
 
-    Parameters and function of :class:`dispgns.model.MLP`; ``matmul_dtype``
-    as in :class:`Linear`.
-    """
+    def dense(self, index: int, fan_in: int, fan_out: int):
+        return Linear(fan_in, fan_out, self.matmul_dtype, name=f"Dense_{index}")
 
-    in_features: int
-    hidden: tuple[int, ...]
-    out_features: int
-    activation: Callable = jax.nn.relu
-    layer_norm: bool = True
-    epsilon: float = 1e-5
-    matmul_dtype: Any = None
-
-    def setup(self):
-        sizes = (self.in_features, *self.hidden, self.out_features)
-        self.layers = [
-            Linear(sizes[k], sizes[k + 1], self.matmul_dtype, name=f"Dense_{k}") for k in range(len(sizes) - 1)
-        ]
-        if self.layer_norm:
-            self.norm = LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
-
-    def __call__(self, x):
-        return self.after_first(self.layers[0](x))
+    def layer_norm_module(self):
+        return LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
 
     def after_first(self, h):
         """The MLP applied to the output ``h (..., H)`` of its first linear layer."""
+        if not self.layer_norm or len(self.layers) == 1:
+            return super().after_first(h)
         act = self.activation
-        if not self.layer_norm:
-            for layer in self.layers[1:]:
-                h = layer(act(h))
-            return h
-        if len(self.layers) == 1:
-            return self.norm(h)
         for layer in self.layers[1:-1]:
             h = layer(act(h))
         # LayerNorm's centring folded into the last layer: with the mean over

@@ -35,7 +35,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dispgns import kernels as fused_kernels
 from dispgns._config import check_fields, config_from_mapping
 from dispgns.features import edge_feature_size, node_feature_size
 from dispgns.graph import Bounds, as_bounds
@@ -179,11 +178,15 @@ class MLP(nn.Module):
 
     def setup(self):
         sizes = (self.in_features, *self.hidden, self.out_features)
-        self.layers = [
-            Dense(sizes[k], sizes[k + 1], self.matmul_dtype, name=f"Dense_{k}") for k in range(len(sizes) - 1)
-        ]
+        self.layers = [self.dense(k, sizes[k], sizes[k + 1]) for k in range(len(sizes) - 1)]
         if self.layer_norm:
-            self.norm = nn.LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
+            self.norm = self.layer_norm_module()
+
+    def dense(self, index: int, fan_in: int, fan_out: int):
+        return Dense(fan_in, fan_out, self.matmul_dtype, name=f"Dense_{index}")
+
+    def layer_norm_module(self):
+        return nn.LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
 
     def __call__(self, x):
         return self.after_first(self.layers[0](x))
@@ -197,7 +200,9 @@ class MLP(nn.Module):
 
 def _mlp(c: ModelConfig, in_features: int, out_features: int, name: str, layer_norm: bool = True):
     """An MLP of the network, computed by the implementation ``c.kernels`` names (chosen here only)."""
-    cls = fused_kernels.MLP if c.kernels == "fused" else MLP
+    cls = MLP
+    if c.kernels == "fused":
+        from dispgns.kernels import MLP as cls  # it extends this module's MLP, so it is imported on demand
     hidden, act, dtype = (c.hidden_size,) * c.hidden_layers, _ACTIVATIONS[c.activation], _MATMUL_DTYPES[c.matmul_dtype]
     return cls(in_features, hidden, out_features, act, layer_norm, c.layer_norm_epsilon, dtype, name=name)
 

@@ -487,33 +487,35 @@ def _rollout_chunk_batch(params, windows, radius, mask, limit, *, length: int, c
     return steps_until_overflow(step, windows, limit, length=length, axis=1)
 
 
-def _roll(chunk, args, window, n_steps, chunk_size, capacity, grow, progress, compiler_options, model_config):
+def _host_rollout(params, initial_positions, radius, n_steps, model_config: ModelConfig, settings, *, batched: bool):
     """The host loop of :func:`rollout` and :func:`rollout_batch`: compiled chunks driven by :func:`drive`.
 
-    ``chunk`` is :func:`_rollout_chunk` or :func:`_rollout_chunk_batch`;
-    ``args`` are its ``(params, radius, mask)``.
+    ``settings``: their ``(mask, capacity, chunk_size, compiler_options,
+    progress)``. Returns positions ``(n_steps, ...)`` (steps first, also for a batch).
     """
-    params, radius, mask = args
+    mask, capacity, chunk_size, compiler_options, progress = settings
+    pure = "jax.vmap(dispgns.rollout_scan)" if batched else "dispgns.rollout_scan"
+    window, a, m = _host_inputs(initial_positions, radius, mask, model_config, batched=batched, pure=pure)
+    _check_steps(n_steps)
+    if capacity is None:
+        capacity = fit_capacity(window[..., -1, :, :], model_config, mask=m, margin=0.1)
     length = math.ceil(n_steps / math.ceil(n_steps / max(1, chunk_size)))
+    chunk = _rollout_chunk_batch if batched else _rollout_chunk
     run_chunk = jitted(chunk, compiler_options, static_argnames=("length", "capacity", "model_config"))
 
     def attempt(window, capacity, remaining):
+        limit = jnp.int32(min(length, remaining))
         new_window, positions, taken, overflow = run_chunk(
-            params,
-            window,
-            radius,
-            mask,
-            jnp.int32(min(length, remaining)),
-            length=length,
-            capacity=capacity,
-            model_config=model_config,
+            params, window, a, m, limit, length=length, capacity=capacity, model_config=model_config
         )
         taken, overflow = int(taken), bool(overflow)
         kept = taken - 1 if overflow else taken
         # After an overflow the window is the one before the overflowing step: go on from it.
         return Attempt(new_window, positions[:kept] if kept else None, kept, overflow)
 
-    _, chunks, _ = drive(attempt, window, capacity, grow, total=n_steps, progress=progress)
+    _, chunks, _ = drive(
+        attempt, window, as_capacity(capacity), _grower(model_config, m), total=n_steps, progress=progress
+    )
     return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks, axis=0)
 
 
@@ -555,24 +557,8 @@ def rollout(
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    window, a, m = _host_inputs(
-        initial_positions, radius, mask, model_config, batched=False, pure="dispgns.rollout_scan"
-    )
-    _check_steps(n_steps)
-    capacity = fit_capacity(window[-1], model_config, mask=m, margin=0.1) if capacity is None else as_capacity(capacity)
-    grow = _grower(model_config, m)
-    return _roll(
-        _rollout_chunk,
-        (params, a, m),
-        window,
-        n_steps,
-        chunk_size,
-        capacity,
-        grow,
-        progress,
-        compiler_options,
-        model_config,
-    )
+    settings = (mask, capacity, chunk_size, compiler_options, progress)
+    return _host_rollout(params, initial_positions, radius, n_steps, model_config, settings, batched=False)
 
 
 def rollout_batch(
@@ -607,24 +593,6 @@ def rollout_batch(
     Returns:
       ``(B, n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    windows, a, m = _host_inputs(
-        initial_positions, radius, mask, model_config, batched=True, pure="jax.vmap(dispgns.rollout_scan)"
-    )
-    _check_steps(n_steps)
-    capacity = (
-        fit_capacity(windows[:, -1], model_config, mask=m, margin=0.1) if capacity is None else as_capacity(capacity)
-    )
-    grow = _grower(model_config, m)
-    positions = _roll(
-        _rollout_chunk_batch,
-        (params, a, m),
-        windows,
-        n_steps,
-        chunk_size,
-        capacity,
-        grow,
-        progress,
-        compiler_options,
-        model_config,
-    )
+    settings = (mask, capacity, chunk_size, compiler_options, progress)
+    positions = _host_rollout(params, initial_positions, radius, n_steps, model_config, settings, batched=True)
     return jnp.moveaxis(positions, 0, 1)

@@ -605,18 +605,8 @@ def simulate(
     x0, v0, radius, mask = _host_inputs(x0, v0, radius, mask, batched=False, pure="dispgns.simulate_scan")
     _check_frames(n_frames, save_every)
     _check_collision_capacity(collision_capacity)
-    xs, vs = _drive(
-        x0[None],
-        v0[None],
-        radius[None],
-        mask[None],
-        config,
-        n_frames,
-        save_every,
-        collision_capacity,
-        chunk_frames,
-        compiler_options,
-    )
+    settings = (n_frames, save_every, collision_capacity, chunk_frames, compiler_options)
+    xs, vs = _drive(x0[None], v0[None], radius[None], mask[None], config, settings)
     return (xs[0], vs[0]) if return_velocity else xs[0]
 
 
@@ -655,19 +645,8 @@ def simulate_batch(
     x0, v0, radius, mask = _host_inputs(x0, v0, radius, mask, batched=True, pure="jax.vmap(dispgns.simulate_scan)")
     _check_frames(n_frames, save_every)
     _check_collision_capacity(collision_capacity)
-    xs, vs = _drive(
-        x0,
-        v0,
-        radius,
-        mask,
-        config,
-        n_frames,
-        save_every,
-        collision_capacity,
-        chunk_frames,
-        compiler_options,
-        progress=progress,
-    )
+    settings = (n_frames, save_every, collision_capacity, chunk_frames, compiler_options)
+    xs, vs = _drive(x0, v0, radius, mask, config, settings, progress=progress)
     return (xs, vs) if return_velocity else xs
 
 
@@ -736,24 +715,14 @@ def _shifted(position, mask, config: PhysicsConfig) -> list:
     return [_park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])]
 
 
-def _drive(
-    x0,
-    v0,
-    radius,
-    mask,
-    config,
-    n_frames,
-    save_every,
-    collision_capacity,
-    chunk_frames,
-    compiler_options,
-    progress=None,
-):
+def _drive(x0, v0, radius, mask, config, settings, progress=None):
     """Chunked, overflow-checked run of B trajectories with :func:`dispgns.capacity.drive`.
 
-    Returns ``(B, n_frames, N, D)`` positions and velocities. A chunk that
+    ``settings``: ``(n_frames, save_every, collision_capacity, chunk_frames,
+    compiler_options)`` of :func:`simulate`. Returns ``(B, n_frames, N, D)`` positions and velocities. A chunk that
     overflowed is redone from its start with the grown capacity.
     """
+    n_frames, save_every, collision_capacity, chunk_frames, compiler_options = settings
     n = x0.shape[1]
     if collision_capacity == "auto":
         collisions = min(n, ladder(max(16, math.ceil(n / 8))))
