@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_tuning:
         from dispgns.tuning import tune_host_allocator
 
-        tune_host_allocator()  # before the command's first JAX computation
+        tune_host_allocator(warn_if_late=False)  # first (in-process callers may have started JAX already)
     try:
         return int(args.func(args) or 0)
     except CLIError as error:
