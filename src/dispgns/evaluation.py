@@ -153,6 +153,7 @@ def predict_trajectories(
     batch_size: int = 6,
     progress: Callable[[int], None] | None = None,
     compiler_options: Mapping[str, Any] | None = None,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> list[np.ndarray]:
     """Full rollouts of ``trajectories`` from their first ``C`` frames.
 
@@ -167,6 +168,9 @@ def predict_trajectories(
       progress: ``progress(steps)`` with the number of model steps just done.
       compiler_options: XLA options for the rollouts (e.g.
         :func:`dispgns.tuning.network_compiler_options`).
+      mesh: a 1-D mesh of this process's devices to spread each group's
+        trajectories over (``batch_size`` is rounded up to a multiple of its
+        size); ``None``: one device.
 
     Returns:
       One ``(n_frames, N, D)`` float32 array per trajectory: frames ``0 ..
@@ -181,6 +185,8 @@ def predict_trajectories(
         raise ValueError(f"every trajectory needs more than C = {c} frames and at least n_frames = {frames}")
     budget = node_budget([t.position.shape[1] for t in trajectories])
     batch_size = max(1, min(batch_size, len(trajectories)))
+    if mesh is not None:
+        batch_size = mesh.devices.size * math.ceil(batch_size / mesh.devices.size)
     out = []
     for start in range(0, len(trajectories), batch_size):
         group = trajectories[start : start + batch_size]
@@ -203,12 +209,30 @@ def predict_trajectories(
                 mask=mask,
                 progress=step_progress,
                 compiler_options=compiler_options,
+                mesh=mesh,
             )
         )
         for k, traj in enumerate(group):
             n = traj.position.shape[1]
             out.append(np.concatenate([np.asarray(traj.position[:c], np.float32), predicted[k, :, :n]], axis=0))
     return out
+
+
+def _from_every_process(mine: list[np.ndarray], trajectories: Sequence[Any], frames: int) -> list[np.ndarray]:
+    """Every trajectory's array, from the arrays each process computed for its share ``p::P`` (``(T, N_k, D)``)."""
+    processes = jax.process_count()
+    if processes == 1:
+        return mine
+    from jax.experimental import multihost_utils
+
+    count = math.ceil(len(trajectories) / processes)
+    dim = trajectories[0].position.shape[-1]
+    budget = max(t.position.shape[1] for t in trajectories)
+    stacked = np.zeros((count, frames, budget, dim), np.float32)
+    for k, array in enumerate(mine):
+        stacked[k, :, : array.shape[1]] = array
+    everyone = np.asarray(multihost_utils.process_allgather(stacked))  # (processes, count, T, budget, D)
+    return [everyone[k % processes, k // processes, :, : t.position.shape[1]] for k, t in enumerate(trajectories)]
 
 
 def chaos_floor_trajectories(
@@ -296,6 +320,7 @@ def evaluate_trajectories(
     progress: Callable[[str, int], None] | None = None,
     compiler_options: Mapping[str, Any] | None = None,
     physics_compiler_options: Mapping[str, Any] | None = None,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> dict[str, Any]:
     """Roll out and score every trajectory of a split.
 
@@ -315,6 +340,12 @@ def evaluate_trajectories(
         steps) or ``"chaos"`` (trajectories).
       compiler_options, physics_compiler_options: XLA options for the
         rollouts and the chaos floor's physics (:mod:`dispgns.tuning`).
+      mesh: a 1-D mesh of this process's devices to spread the rollouts over
+        (see :func:`predict_trajectories`). In a multi-process run
+        (``jax.distributed``) every process calls this with the same split;
+        process ``p`` of ``P`` computes trajectories ``p, p + P, ...`` and the
+        results are gathered (``jax.experimental.multihost_utils``), so every
+        process returns the whole split.
 
     Returns:
       ``{"predictions": [(T, N, D), ...], "metrics": [rollout_metrics dict,
@@ -324,27 +355,31 @@ def evaluate_trajectories(
     trajectories = list(trajectories)
     report = progress or (lambda stage, amount: None)
     frames = min(t.position.shape[0] for t in trajectories) if n_frames is None else int(n_frames)
+    mine = trajectories[jax.process_index() :: jax.process_count()]
     predictions = predict_trajectories(
         params,
-        trajectories,
+        mine,
         model_config=model_config,
         n_frames=frames,
         batch_size=batch_size,
         progress=lambda steps: report("rollout", steps),
         compiler_options=compiler_options,
+        mesh=mesh,
     )
     with_chaos = chaos_floor and all(getattr(t, "initial_position", None) is not None for t in trajectories)
-    chaos = [None] * len(trajectories)
+    chaos = [None] * len(mine)
     if with_chaos:
         chaos = chaos_floor_trajectories(
-            trajectories,
+            mine,
             physics_config,
             n_frames=frames,
             save_every=save_every,
             x64=chaos_x64,
             compiler_options=physics_compiler_options,
         )
-        report("chaos", len(trajectories))
+        report("chaos", len(mine))
+    predictions = _from_every_process(predictions, trajectories, frames)
+    chaos = _from_every_process(chaos, trajectories, frames) if with_chaos else [None] * len(trajectories)
     metrics = []
     for traj, predicted, floor in zip(trajectories, predictions, chaos):
         metrics.append(

@@ -33,6 +33,7 @@ outputs are zero accelerations and unchanged positions.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
@@ -477,37 +478,75 @@ def _rollout_chunk(params, window, radius, mask, limit, *, length: int, capacity
     return steps_until_overflow(step, window, limit, length=length, axis=0)
 
 
-def _rollout_chunk_batch(params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config):
-    """:func:`_rollout_chunk` of ``B`` windows ``(B, C, N, D)``; positions ``(length, B, N, D)``."""
+def _rollout_chunk_batch(
+    params, windows, radius, mask, limit, *, length: int, capacity: GraphCapacity, model_config, axis_name=None
+):
+    """:func:`_rollout_chunk` of ``B`` windows ``(B, C, N, D)``; positions ``(length, B, N, D)``.
+
+    With ``axis_name`` (inside ``shard_map``, the trajectories split over a
+    mesh axis) an overflow on any device stops every device at that step.
+    """
 
     def step(w):
         out = predict_step_batch(params, w, radius, model_config=model_config, capacity=capacity, mask=mask)
-        return out.position, jnp.any(out.overflow)
+        overflow = jnp.any(out.overflow)
+        if axis_name is not None:
+            overflow = lax.psum(overflow.astype(jnp.int32), axis_name) > 0
+        return out.position, overflow
 
     return steps_until_overflow(step, windows, limit, length=length, axis=1)
+
+
+def _sharded_chunk_batch(params, windows, radius, mask, limit, *, length: int, capacity, model_config, mesh):
+    """:func:`_rollout_chunk_batch` with the trajectories split over the 1-D ``mesh``'s axis (one per device)."""
+    (axis,) = mesh.axis_names
+    chunk = functools.partial(
+        _rollout_chunk_batch, length=length, capacity=capacity, model_config=model_config, axis_name=axis
+    )
+    split = jax.sharding.PartitionSpec(axis)
+    whole = jax.sharding.PartitionSpec()
+    sharded = jax.shard_map(
+        chunk,
+        mesh=mesh,
+        in_specs=(whole, split, split, split, whole),
+        out_specs=(split, jax.sharding.PartitionSpec(None, axis), whole, whole),
+        check_vma=False,  # the overflow flags are summed over the axis in the step itself
+    )
+    return sharded(params, windows, radius, mask, limit)
 
 
 def _host_rollout(params, initial_positions, radius, n_steps, model_config: ModelConfig, settings, *, batched: bool):
     """The host loop of :func:`rollout` and :func:`rollout_batch`: compiled chunks driven by :func:`drive`.
 
     ``settings``: their ``(mask, capacity, chunk_size, compiler_options,
-    progress)``. Returns positions ``(n_steps, ...)`` (steps first, also for a batch).
+    progress, mesh)``. Returns positions ``(n_steps, ...)`` (steps first, also for a batch).
     """
-    mask, capacity, chunk_size, compiler_options, progress = settings
+    mask, capacity, chunk_size, compiler_options, progress, mesh = settings
     pure = "jax.vmap(dispgns.rollout_scan)" if batched else "dispgns.rollout_scan"
     window, a, m = _host_inputs(initial_positions, radius, mask, model_config, batched=batched, pure=pure)
     _check_steps(n_steps)
     if capacity is None:
         capacity = fit_capacity(window[..., -1, :, :], model_config, mask=m, margin=0.1)
     length = math.ceil(n_steps / math.ceil(n_steps / max(1, chunk_size)))
-    chunk = _rollout_chunk_batch if batched else _rollout_chunk
-    run_chunk = jitted(chunk, compiler_options, static_argnames=("length", "capacity", "model_config"))
+    static = {"length": length, "model_config": model_config}
+    if mesh is not None:
+        if window.shape[0] % mesh.devices.size:
+            raise ValueError(
+                f"{window.shape[0]} trajectories do not split over the mesh's {mesh.devices.size} devices: "
+                "pad the batch to a multiple of the device count (e.g. with repeats)"
+            )
+        chunk, static["mesh"] = _sharded_chunk_batch, mesh
+        # The trajectories split over the mesh's axis, the parameters on every device.
+        split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(*mesh.axis_names))
+        window, a, m = (jax.device_put(x, split) for x in (window, a, m))
+        params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    else:
+        chunk = _rollout_chunk_batch if batched else _rollout_chunk
+    run_chunk = jitted(chunk, compiler_options, static_argnames=(*static, "capacity"))
 
     def attempt(window, capacity, remaining):
         limit = jnp.int32(min(length, remaining))
-        new_window, positions, taken, overflow = run_chunk(
-            params, window, a, m, limit, length=length, capacity=capacity, model_config=model_config
-        )
+        new_window, positions, taken, overflow = run_chunk(params, window, a, m, limit, capacity=capacity, **static)
         taken, overflow = int(taken), bool(overflow)
         kept = taken - 1 if overflow else taken
         # After an overflow the window is the one before the overflowing step: go on from it.
@@ -557,7 +596,7 @@ def rollout(
     Returns:
       ``(n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    settings = (mask, capacity, chunk_size, compiler_options, progress)
+    settings = (mask, capacity, chunk_size, compiler_options, progress, None)
     return _host_rollout(params, initial_positions, radius, n_steps, model_config, settings, batched=False)
 
 
@@ -573,6 +612,7 @@ def rollout_batch(
     chunk_size: int = 50,
     compiler_options: Mapping[str, Any] | None = None,
     progress: Callable[[int], None] | None = None,
+    mesh: jax.sharding.Mesh | None = None,
 ):
     """Rollouts of ``B`` trajectories of equal padded size in one compiled program per chunk (host).
 
@@ -588,11 +628,15 @@ def rollout_batch(
       radius: ``(B, N)`` radii. mask: optional ``(B, N)`` bool.
       capacity: the first graph capacity per trajectory (``None``: fitted to
         the initial frames of every trajectory).
+      mesh: a 1-D ``jax.sharding.Mesh`` of this process's devices to split the
+        trajectories over (``B`` a multiple of its size): each device rolls out
+        its share as one disjoint graph, and an overflow on any device grows
+        the capacity for all. ``None``: one device.
       Other arguments as :func:`rollout`.
 
     Returns:
       ``(B, n_steps, N, D)`` predicted positions for frames ``C .. C + n_steps - 1``.
     """
-    settings = (mask, capacity, chunk_size, compiler_options, progress)
+    settings = (mask, capacity, chunk_size, compiler_options, progress, mesh)
     positions = _host_rollout(params, initial_positions, radius, n_steps, model_config, settings, batched=True)
     return jnp.moveaxis(positions, 0, 1)

@@ -57,6 +57,46 @@ def physics_options(args) -> dict:
     return tuning.physics_compiler_options() if cpu_tuned(args) else {}
 
 
+def add_distributed_arguments(parser, description: str):
+    """The ``--distributed`` options (JAX's multi-process runtime); returns their argument group."""
+    group = parser.add_argument_group("devices and processes", description)
+    group.add_argument(
+        "--distributed",
+        action="store_true",
+        help="start JAX's distributed runtime (jax.distributed.initialize); the coordinator address, process "
+        "count and id come from the options below or from what JAX reads itself (JAX_COORDINATOR_ADDRESS, "
+        "JAX_NUM_PROCESSES, JAX_PROCESS_ID, SLURM)",
+    )
+    group.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 (with --distributed)")
+    group.add_argument("--num-processes", type=int, metavar="P", help="processes in all (with --distributed)")
+    group.add_argument("--process-id", type=int, metavar="I", help="this process, 0 .. P-1 (with --distributed)")
+    return group
+
+
+def start_distributed(args) -> None:
+    """Start JAX's distributed runtime for ``--distributed``, before anything starts JAX's backend."""
+    if not args.distributed:
+        if any(value is not None for value in (args.coordinator, args.num_processes, args.process_id)):
+            raise CLIError("--coordinator, --num-processes and --process-id need --distributed")
+        return
+    import jax
+
+    try:
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+        )
+    except (RuntimeError, ValueError) as error:
+        raise CLIError(f"--distributed: cannot start JAX's distributed runtime: {error}") from None
+
+
+def local_mesh():
+    """A 1-D mesh of this process's devices (axis ``"data"``), or ``None`` with one device."""
+    import jax
+
+    devices = jax.local_devices()
+    return None if len(devices) == 1 else jax.make_mesh((len(devices),), ("data",), devices=devices)
+
+
 def add_model_argument(parser) -> None:
     parser.add_argument(
         "--model",

@@ -8,13 +8,16 @@ from pathlib import Path
 
 from dispgns.cli import CLIError
 from dispgns.cli._common import (
+    add_distributed_arguments,
     add_model_argument,
     fmt,
     load_model_argument,
+    local_mesh,
     mean_std,
     network_options,
     physics_options,
     sigterm_as_interrupt,
+    start_distributed,
 )
 
 
@@ -44,6 +47,11 @@ def register(subparsers) -> None:
     parser.add_argument("--max-trajectories", type=int, metavar="K", help="only the first K trajectories per split")
     parser.add_argument("--batch-size", type=int, default=6, metavar="B", help="trajectories rolled out together")
     parser.add_argument("--no-chaos", action="store_true", help="skip the chaos-floor reference")
+    add_distributed_arguments(
+        parser,
+        "Each group of trajectories is spread over this process's devices; with --distributed the trajectories "
+        "are shared out over the processes too, and process 0 writes the results.",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--overwrite", action="store_true", help="replace an earlier evaluation in DIR (a directory with metrics.json)"
@@ -52,6 +60,11 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    start_distributed(args)  # first: jax-md starts JAX's backend at import
+    import tempfile
+
+    import jax
+
     from dispgns.data import DatasetError, load_dataset
     from dispgns.files import staged_directory
 
@@ -70,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
     if args.batch_size < 1 or (args.max_trajectories is not None and args.max_trajectories < 1):
         raise CLIError("--batch-size and --max-trajectories must be >= 1")
     out = Path(args.out)
+    if jax.process_index() != 0:  # it computes its share of the rollouts; process 0 writes the results
+        with tempfile.TemporaryDirectory() as scratch:
+            _evaluate(args, params, model_config, info, metadata, splits, Path(scratch))
+        return 0
     # Everything is written into a staging directory renamed to --out at the
     # end: an interrupted or failed evaluation leaves nothing half-written.
     try:
@@ -143,6 +160,7 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
                 n_frames=frames,
                 batch_size=args.batch_size,
                 progress=progress,
+                mesh=local_mesh(),
                 compiler_options=network_options(args, model_config),
                 physics_compiler_options=physics_options(args),
             )

@@ -11,7 +11,13 @@ from pathlib import Path
 from typing import Any
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import compute_config, network_options, sigterm_as_interrupt
+from dispgns.cli._common import (
+    add_distributed_arguments,
+    compute_config,
+    network_options,
+    sigterm_as_interrupt,
+    start_distributed,
+)
 
 # Training fields that may change when a run is resumed: they decide how long
 # and how often, not what is learned.
@@ -56,6 +62,14 @@ def register(subparsers) -> None:
     parser.add_argument("--resume", action="store_true", help="continue the run in RUN from its latest checkpoint")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing run in RUN")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parallel = add_distributed_arguments(
+        parser,
+        "Every batch is split over all devices JAX sees (data parallelism; train.batch_size is the global batch, "
+        "a multiple of the device count); with --distributed, over the devices of every process.",
+    )
+    parallel.add_argument(
+        "--one-device", action="store_true", help="train on the first device only, even when JAX sees more"
+    )
     parser.set_defaults(func=run)
 
 
@@ -239,6 +253,7 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    start_distributed(args)  # first: jax-md (imported with dispgns.training) starts JAX's backend at import
     import jax
 
     from dispgns.data import DatasetError, load_dataset
@@ -291,8 +306,11 @@ def run(args: argparse.Namespace) -> int:
         )
     # Saved and exported: model_config; computed with: its CPU kernels unless --no-tuning (same function).
     compute = compute_config(args, model_config)
+    parallel = _data_parallel(args, train_config.batch_size)
     try:
-        stream = BatchStream.for_training(train_trajectories, model_config, train_config)
+        stream = BatchStream.for_training(
+            train_trajectories, model_config, train_config, shards=1 if parallel is None else parallel.devices
+        )
     except ValueError as error:
         raise CLIError(f"{Path(args.data) / 'train.h5'}: {error}") from None
     options = network_options(args, model_config)
@@ -309,9 +327,14 @@ def run(args: argparse.Namespace) -> int:
     config = run_config(model_config, train_config, normalization, dataset_info)
     init_key, key = jax.random.split(jax.random.key(train_config.seed))
     state = create_train_state(init_key, compute, train_config, normalization)
+    primary = parallel is None or parallel.is_primary  # the one process that writes files other than checkpoints
+    if parallel is not None:
+        state = parallel.replicate(state)
     # Everything is validated: only now is the run directory created or changed.
-    if not args.resume:
+    if not args.resume and primary:
         _create_run_dir(run_dir, overwrite=args.overwrite)
+    if parallel is not None:
+        parallel.barrier("run directory")
     checkpointer = Checkpointer(run_dir, keep=train_config.keep_checkpoints, config=config)
     log = JsonlLog(run_dir / LOG_FILE)
     if args.resume:
@@ -322,15 +345,19 @@ def run(args: argparse.Namespace) -> int:
                 checkpointer.close()
                 raise CLIError(str(error)) from None
         # Records past the checkpoint (or all, if the run died before its first one) are redone.
-        log.truncate_after(int(state.step))
-    write_json(run_dir / CONFIG_FILE, config)
+        if primary:
+            log.truncate_after(int(state.step))
+    if primary:
+        write_json(run_dir / CONFIG_FILE, config)
 
     first, last = int(state.step), train_config.num_steps
-    progress = _Progress(first, last, enabled=not args.no_progress)
+    progress = _Progress(first, last, enabled=primary and not args.no_progress)
     if first >= last:
         progress.write(f"run is already at step {first} >= {last}; nothing to train (raise --steps to continue)")
 
     def on_log(record):
+        if not primary:
+            return
         log.write(record)
         if record["kind"] == "validation":
             shown = ", ".join(
@@ -350,11 +377,14 @@ def run(args: argparse.Namespace) -> int:
                 on_step=progress.step,
                 on_log=on_log,
                 compiler_options=options,
+                parallel=parallel,
             )
     finally:
         progress.close()
         checkpointer.close()
     state = result.state
+    if not primary:
+        return 130 if result.interrupted else 0
     records = log.read()
     record = {
         "steps": int(state.step),
@@ -362,7 +392,8 @@ def run(args: argparse.Namespace) -> int:
         "dataset": dataset_info,
         "last_validation": result.last_validation,
     }
-    export_model(run_dir / MODEL_DIR, state.params, model_config, record)
+    params = state.params if parallel is None else parallel.local(state.params)
+    export_model(run_dir / MODEL_DIR, params, model_config, record)
     _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
     if result.interrupted:
         print(
@@ -373,6 +404,22 @@ def run(args: argparse.Namespace) -> int:
         return 130
     print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
     return 0
+
+
+def _data_parallel(args, batch_size: int):
+    """A :class:`DataParallel` over every device of every process, or ``None`` for one device."""
+    import jax
+
+    if args.one_device or (jax.device_count() == 1 and not args.distributed):
+        return None
+    from dispgns.training.distributed import DataParallel
+
+    parallel = DataParallel()
+    try:
+        parallel.check_batch_size(batch_size)
+    except ValueError as error:
+        raise CLIError(str(error)) from None
+    return parallel
 
 
 def _plot_log(records, path: Path, plot) -> None:

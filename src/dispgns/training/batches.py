@@ -147,6 +147,10 @@ class BatchStream:
       mirror: reflect each example on the horizontal axes with probability
         1/2, drawn per batch index (so resuming replays the same batches);
         needs a box symmetric about 0.
+      shards: the batch is split into this many equal parts, one per device
+        (data parallelism, :mod:`dispgns.training.distributed`): the edge
+        budget is then that of the largest part's merged graph, the same in
+        every process.
     """
 
     def __init__(
@@ -166,6 +170,7 @@ class BatchStream:
         bounds: Bounds = DEFAULT_BOUNDS,
         compact_edges: bool = True,
         mirror: bool = False,
+        shards: int = 1,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -175,6 +180,9 @@ class BatchStream:
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.mirror = bool(mirror)
+        if int(shards) != shards or shards < 1 or batch_size % shards:
+            raise ValueError(f"shards must be an integer >= 1 that divides batch_size {batch_size}, got {shards!r}")
+        self.shards = int(shards)
         if self.mirror and any(abs(lo + hi) > 1e-12 for lo, hi in bounds):
             raise ValueError(f"mirror augmentation needs a box symmetric about 0, got {bounds}")
         self.shuffle = bool(shuffle)
@@ -279,8 +287,15 @@ class BatchStream:
         )
 
     def edge_budget_for(self, ids) -> int | None:
-        """Edge slots of the merged graph of examples ``ids`` (on the ladder; ``None`` without compaction)."""
-        return edge_budget_for(self._edge_need(ids)) if self.compact_edges else None
+        """Edge slots of the merged graph of one shard of examples ``ids`` (on the ladder; ``None``: no compaction).
+
+        With ``shards`` parts, the budget of the part that needs most (every
+        device compiles the same program).
+        """
+        if not self.compact_edges:
+            return None
+        parts = np.array_split(np.asarray(ids, np.int64), self.shards)
+        return edge_budget_for(max(self._edge_need(part) for part in parts))
 
     @staticmethod
     def grow(batch: Batch) -> Batch:
@@ -303,25 +318,33 @@ class BatchStream:
         epoch, j = divmod(int(i), self.batches_per_epoch)
         return self.epoch_order(epoch)[j * self.batch_size : (j + 1) * self.batch_size]
 
-    def batch(self, i: int) -> Batch:
-        """Batch ``i`` (a pure function of ``seed`` and ``i``)."""
+    def batch(self, i: int, part: slice = slice(None)) -> Batch:
+        """Batch ``i`` (a pure function of ``seed`` and ``i``), or the ``part`` of it one process holds.
+
+        A part keeps the whole batch's capacity and edge budget (all processes
+        compile the same program).
+        """
         ids = self.batch_examples(i)
         flips = None
         if self.mirror:
             flips = np.random.default_rng([self.seed, 1, int(i)]).integers(0, 2, (len(ids), self.dim - 1)) == 1
-        return self.make_batch(ids, flips)
+        if part == slice(None):
+            return self.make_batch(ids, flips)
+        local = self.make_batch(ids[part], None if flips is None else flips[part], nodes=self._node_budget(ids))
+        return local.with_capacity(self.capacity_for(ids), self.edge_budget_for(ids))
 
-    def make_batch(self, ids: Sequence[int], flips: np.ndarray | None = None) -> Batch:
+    def make_batch(self, ids: Sequence[int], flips: np.ndarray | None = None, *, nodes: int | None = None) -> Batch:
         """A padded batch of the given example ids.
 
         Args:
           ids: example ids.
           flips: optional ``(len(ids), D - 1)`` bool: reflect example ``k`` on
             axis ``d`` (``x_d -> -x_d``) where ``flips[k, d]``.
+          nodes: particle slots (``None``: the smallest node budget that holds them).
         """
         ids = np.asarray(ids, np.int64)
         trajs, starts = self.index.trajectory[ids], self.index.start[ids]
-        nodes = self._node_budget(ids)
+        nodes = self._node_budget(ids) if nodes is None else int(nodes)
         b = len(ids)
         position = np.zeros((b, self.window, nodes, self.dim), np.float32)
         radius = np.ones((b, nodes), np.float32)

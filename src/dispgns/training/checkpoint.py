@@ -190,7 +190,9 @@ def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[s
         "params": state.params,
         "opt_state": state.opt_state,
         "step": state.step,
-        "key": jax.random.key_data(key),
+        # numpy, not a jax.Array: the key lives on one device, and in a multi-process run orbax saves only
+        # global or numpy arrays.
+        "key": np.asarray(jax.random.key_data(key)),
         "data_position": np.asarray(data_position, np.int32),
     }
 
@@ -317,7 +319,7 @@ class Checkpointer:
             ) from None
         tree, extra = restored["state"], restored["extra"]
         state = template.replace(params=tree["params"], opt_state=tree["opt_state"], step=tree["step"])
-        return state, jax.random.wrap_key_data(tree["key"]), dict(extra)
+        return state, jax.random.wrap_key_data(np.asarray(tree["key"])), dict(extra)
 
     def close(self) -> None:
         self._last.close()

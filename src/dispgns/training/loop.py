@@ -160,6 +160,7 @@ def train(
     on_step: Callable[[int, Mapping[str, float]], None] | None = None,
     on_log: Callable[[Mapping[str, Any]], None] | None = None,
     compiler_options: Mapping[str, Any] | None = None,
+    parallel=None,
 ) -> LoopResult:
     """Train from ``state.step`` up to ``until_step`` (default ``train_config.num_steps``).
 
@@ -182,6 +183,10 @@ def train(
       on_log: receives every log record.
       compiler_options: XLA options for the training step (e.g.
         :func:`dispgns.tuning.network_compiler_options`).
+      parallel: a :class:`dispgns.training.distributed.DataParallel`: every
+        batch split over its devices (``state`` replicated on them; the
+        stream built with ``shards`` = its device count); each process reads
+        only its part of every batch. ``None``: one device.
 
     Returns:
       :class:`LoopResult`. On ``KeyboardInterrupt`` the state is checkpointed
@@ -203,7 +208,7 @@ def train(
         nonlocal last_validation, validated_at
         if validator is None or validated_at == step:
             return
-        metrics = dict(validator(state.params))
+        metrics = dict(validator(state.params if parallel is None else parallel.local(state.params)))
         last_validation = {"kind": "validation", "step": step, **metrics, "elapsed_s": time.perf_counter() - start_time}
         validated_at = step
         log(last_validation)
@@ -221,9 +226,12 @@ def train(
     interrupted = False
     try:
         while step < until:
-            batch = stream.batch(step)
+            if parallel is None:
+                batch = stream.batch(step)
+            else:
+                batch = parallel.global_batch(stream.batch(step, parallel.local_examples(stream.batch_size)))
             state, metrics, _ = train_step_checked(
-                state, batch, jax.random.fold_in(key, step), compiler_options=compiler_options
+                state, batch, jax.random.fold_in(key, step), compiler_options=compiler_options, parallel=parallel
             )
             step += 1
             stream.position = step

@@ -198,7 +198,28 @@ def create_train_state(
     )
 
 
-def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_config: TrainConfig):
+def _example_keys(key, count: int, axis_name: str | None):
+    """The noise keys of this device's ``count`` examples: slices of one split over the whole batch.
+
+    With ``axis_name`` (the batch split over a mesh axis) the whole batch has
+    ``count x devices`` examples and this device holds the slice at its index,
+    so every example gets the key it would get on one device.
+    """
+    if axis_name is None:
+        return jax.random.split(key, count)
+    devices = lax.psum(1, axis_name)
+    keys = jax.random.split(key, count * devices)
+    return lax.dynamic_slice_in_dim(keys, lax.axis_index(axis_name) * count, count)
+
+
+def _any(flag, axis_name: str | None):
+    """``flag`` or'ed over the devices of ``axis_name`` (all of them skip a step together)."""
+    return flag if axis_name is None else lax.psum(flag.astype(jnp.int32), axis_name) > 0
+
+
+def _prepare_batch(
+    params, batch: Batch, key, model_config: ModelConfig, train_config: TrainConfig, axis_name: str | None = None
+):
     """Inputs, graphs and standardised targets of a batch (no gradient flows through here).
 
     Returns ``(inputs (B, C, N, D) sanitised, radius (B, N) sanitised,
@@ -207,7 +228,7 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
     c = model_config.input_sequence_length
     k = train_config.pushforward_steps
     position, radius, mask = batch.position, batch.radius, batch.mask
-    keys = jax.random.split(key, position.shape[0])
+    keys = _example_keys(key, position.shape[0], axis_name)
     inputs = position[:, :c]
     windows = inputs + jax.vmap(lambda key, x, m: random_walk_noise(key, x, train_config.noise_std, m))(
         keys, inputs, mask
@@ -245,26 +266,42 @@ def _prepare_batch(params, batch: Batch, key, model_config: ModelConfig, train_c
     return x, a, graphs, target, overflow
 
 
-def loss_fn(network, normalization, batch: Batch, key: jax.Array, model_config: ModelConfig, train_config: TrainConfig):
+def loss_fn(
+    network,
+    normalization,
+    batch: Batch,
+    key: jax.Array,
+    model_config: ModelConfig,
+    train_config: TrainConfig,
+    axis_name: str | None = None,
+):
     """Mean over the real particles of the batch of the squared error summed over D.
 
     The ``B`` examples are evaluated as one disjoint graph
     (:func:`dispgns.simulator.network_output_batch`), compacted to
     ``batch.edge_budget`` edge slots when the batch has one.
 
+    With ``axis_name`` (inside ``shard_map`` over a mesh axis that splits the
+    batch) ``batch`` is this device's part and the value is its share of the
+    whole batch's loss (its error sum over the whole batch's particle count):
+    the shares and their gradients sum to those of the whole batch.
+
     Returns ``(loss, {"overflow": bool})``.
     """
     frozen = lax.stop_gradient({"network": network, "normalization": normalization})
-    x, a, graphs, target, overflow = _prepare_batch(frozen, batch, key, model_config, train_config)
+    x, a, graphs, target, overflow = _prepare_batch(frozen, batch, key, model_config, train_config, axis_name)
     params = {"network": network, "normalization": normalization}
     output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=batch.edge_budget)
     error = jnp.where(batch.mask, jnp.sum((output - target) ** 2, axis=-1), 0.0)
-    loss = jnp.sum(error) / jnp.maximum(jnp.sum(batch.mask, dtype=jnp.float32), 1.0)
-    return loss, {"overflow": overflow}
+    count = jnp.sum(batch.mask, dtype=jnp.float32)
+    if axis_name is not None:
+        count = lax.psum(count, axis_name)
+    loss = jnp.sum(error) / jnp.maximum(count, 1.0)
+    return loss, {"overflow": _any(overflow, axis_name)}
 
 
-@jax.jit
-def train_step(state: TrainState, batch: Batch, key: jax.Array):
+@functools.partial(jax.jit, static_argnames=("axis_name",))
+def train_step(state: TrainState, batch: Batch, key: jax.Array, *, axis_name: str | None = None):
     """One optimiser step (pure and jitted; compiles once per batch shape and capacity).
 
     Args:
@@ -273,6 +310,11 @@ def train_step(state: TrainState, batch: Batch, key: jax.Array):
         pushforward_steps`` frames.
       key: PRNG key of this step's noise; use ``jax.random.fold_in(key0,
         state.step)`` for runs that resume exactly.
+      axis_name: static; the mesh axis the batch is split over when the step
+        runs inside ``shard_map`` (data parallelism, see
+        :mod:`dispgns.training.distributed`): losses, gradients and overflow
+        flags are summed over it, so every device makes the same update, that
+        of the whole batch. ``None``: the whole batch is here.
 
     Returns:
       ``(new_state, metrics)``; metrics: ``loss`` (before the update),
@@ -288,8 +330,10 @@ def train_step(state: TrainState, batch: Batch, key: jax.Array):
         )
     normalization = state.params["normalization"]
     (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-        state.params["network"], normalization, batch, key, mc, tc
+        state.params["network"], normalization, batch, key, mc, tc, axis_name
     )
+    if axis_name is not None:
+        loss, grads = lax.psum((loss, grads), axis_name)
     tx = make_optimizer(tc)
     updates, opt_state = tx.update(grads, state.opt_state, state.params["network"])
     network = optax.apply_updates(state.params["network"], updates)
@@ -315,6 +359,7 @@ def train_step_checked(
     key: jax.Array,
     *,
     compiler_options: Mapping[str, Any] | None = None,
+    parallel=None,
 ):
     """:func:`train_step` with the graph capacity grown until no graph overflows (host).
 
@@ -322,12 +367,14 @@ def train_step_checked(
       state, batch, key: as :func:`train_step`.
       compiler_options: XLA options for the step (e.g.
         :func:`dispgns.tuning.network_compiler_options`).
+      parallel: a :class:`dispgns.training.distributed.DataParallel` to split
+        the batch over its devices (``state`` replicated on them), or ``None``.
 
     Returns:
       ``(new_state, metrics, batch)``: the batch actually used (with the
       capacity that fitted).
     """
-    step = jitted(train_step, compiler_options)
+    step = jitted(train_step, compiler_options) if parallel is None else parallel.step(compiler_options)
 
     def attempt(state, sizes, _):
         new_state, metrics = step(state, batch.with_capacity(*sizes), key)
