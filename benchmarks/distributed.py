@@ -113,7 +113,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--batch-size", type=int, default=4, help="global batch (a multiple of every device count)")
     parser.add_argument("--steps", type=int, default=10, help="timed steps per configuration (median)")
-    parser.add_argument("--real-devices", action="store_true", help="use the machine's devices (GPUs), not forced CPU ones")
+    parser.add_argument("--real-devices", action="store_true", help="the machine's devices (GPUs), not forced CPU ones")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--processes", type=int, default=1, help=argparse.SUPPRESS)
     parser.add_argument("--process-id", type=int, default=0, help=argparse.SUPPRESS)
