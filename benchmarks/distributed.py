@@ -33,6 +33,9 @@ HERE = Path(__file__).resolve().parent
 
 def worker(args) -> None:
     """One configuration: time ``args.steps`` data-parallel steps; process 0 prints a JSON line."""
+    from dispgns import tuning
+
+    tuning.tune_host_allocator()  # first, as the command line does
     import jax
 
     if args.processes > 1:
