@@ -98,6 +98,11 @@ def test_loop_logs_validates_and_keeps_last_and_best(data, tiny_model_config, tm
     )
     checkpointer.close()
     assert [r["step"] for r in records if r["kind"] == "train"] == [5, 10, 15, 20, 25, 30]
+    # Wall and CPU time of the process, so accuracy per CPU-hour can be plotted from the log.
+    for name in ("elapsed_s", "cpu_s"):
+        times = [r[name] for r in records]
+        assert all(t >= 0 for t in times) and times == sorted(times), name
+    assert records[-1]["cpu_s"] > 0
     assert [(r["step"], r["valid_rollout_mse"]) for r in records if r["kind"] == "validation"] == [
         (10, 3.0),
         (20, 1.0),

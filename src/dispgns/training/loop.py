@@ -166,7 +166,9 @@ def train(
 
     Every ``log_every`` steps ``on_log`` gets ``{"kind": "train", "step",
     "loss" (mean since the last record), "grad_norm", "learning_rate",
-    "steps_per_s", "elapsed_s"}``; every ``validate_every`` steps (and at the
+    "steps_per_s", "elapsed_s", "cpu_s"}`` (wall and CPU seconds of this
+    process since ``train`` was called: a resumed run starts again from 0,
+    so accuracy per CPU-hour sums the segments); every ``validate_every`` steps (and at the
     end) ``validator(params)`` runs and ``on_log`` gets ``{"kind":
     "validation", "step", ...metrics}``; every ``checkpoint_every`` steps, at
     the end and on ``KeyboardInterrupt`` the checkpointer saves (the best
@@ -199,6 +201,7 @@ def train(
     step = int(state.step)
     stream.position = step
     start_time = time.perf_counter()
+    start_cpu = time.process_time()
     window_start, window_step = start_time, step
     losses, norms = [], []
     last_validation: dict[str, Any] = {}
@@ -209,7 +212,13 @@ def train(
         if validator is None or validated_at == step:
             return
         metrics = dict(validator(state.params if parallel is None else parallel.local(state.params)))
-        last_validation = {"kind": "validation", "step": step, **metrics, "elapsed_s": time.perf_counter() - start_time}
+        last_validation = {
+            "kind": "validation",
+            "step": step,
+            **metrics,
+            "elapsed_s": time.perf_counter() - start_time,
+            "cpu_s": time.process_time() - start_cpu,
+        }
         validated_at = step
         log(last_validation)
 
@@ -251,6 +260,7 @@ def train(
                         "learning_rate": float(metrics["learning_rate"]),
                         "steps_per_s": (step - window_step) / max(now - window_start, 1e-9),
                         "elapsed_s": now - start_time,
+                        "cpu_s": time.process_time() - start_cpu,
                     }
                 )
                 losses, norms = [], []
