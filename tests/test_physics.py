@@ -190,10 +190,15 @@ def test_cutoff_beyond_the_box_equals_all_pairs(small_state):
     np.testing.assert_allclose(np.asarray(with_cutoff), np.asarray(exact), rtol=0, atol=1e-6)
 
 
-def converging_ring(n=40, ring=0.08, speed=1.0, radius=3e-3):
-    """Particles on a ring flying to its centre: sparse at first, a dense cluster later."""
-    angle = 2 * np.pi * np.arange(n) / n
-    direction = np.stack([np.cos(angle), np.sin(angle)], -1)
+def converging_ring(n=40, ring=0.08, speed=1.0, radius=3e-3, dim=2):
+    """Particles on a ring (a sphere in 3-D) flying to its centre: sparse at first, a dense cluster later."""
+    if dim == 2:
+        angle = 2 * np.pi * np.arange(n) / n
+        direction = np.stack([np.cos(angle), np.sin(angle)], -1)
+    else:  # a Fibonacci sphere: near-uniform directions
+        z = 1 - (2 * np.arange(n) + 1) / n
+        angle = np.pi * (3 - np.sqrt(5)) * np.arange(n)
+        direction = np.stack([np.sqrt(1 - z**2) * np.cos(angle), np.sqrt(1 - z**2) * np.sin(angle), z], -1)
     return ring * direction, -speed * direction, np.full(n, radius)
 
 
@@ -213,9 +218,10 @@ def capacities_tried(monkeypatch):
     return tried
 
 
-def test_neighbor_list_overflow_is_detected_and_recomputed(monkeypatch):
+@pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)])
+def test_neighbor_list_overflow_is_detected_and_recomputed(monkeypatch, dim):
     config = dataclasses.replace(CONFIG, cutoff=0.02, neighbor_skin=1e-3)
-    x0, v0, radius = converging_ring()
+    x0, v0, radius = converging_ring(n=40 if dim == 2 else 60, dim=dim)
     tried = capacities_tried(monkeypatch)
     run = simulate(x0, v0, radius, config, n_frames=60, chunk_frames=10)
     sizes = [(c.cell, c.neighbors) for c in tried]
@@ -224,6 +230,20 @@ def test_neighbor_list_overflow_is_detected_and_recomputed(monkeypatch):
     # Same cutoff on the pure all-pairs path, which has no neighbour list to overflow.
     exact = jax.jit(lambda x, v, a: simulate_scan(x, v, a, config, n_frames=60).position)(x0, v0, radius)
     np.testing.assert_allclose(np.asarray(run), np.asarray(exact), rtol=0, atol=1e-5)
+
+
+def test_3d_cell_lists_equal_all_pairs_with_the_cutoff():
+    # The 3-D reference start (182 spheres, 27 neighbour cells each), cut off at 2 cm, in float64.
+    data = np.load(Path(__file__).parent / "data" / "sedimentation_3d.npz")
+    config = dataclasses.replace(CONFIG, cutoff=0.02, neighbor_skin=1e-3)
+    with jax.enable_x64(True):
+        args = (data["x0"], data["v0"], data["radius"])
+        cells = simulate(*args, config, n_frames=4, save_every=5)
+        exact = simulate_scan(*args, config, n_frames=4, save_every=5).position
+        assert cells.shape == (4, 182, 3)
+        np.testing.assert_allclose(np.asarray(cells), np.asarray(exact), rtol=0, atol=1e-13)
+        # The cut-off matters here: without it the spheres move differently.
+        assert np.max(np.abs(np.asarray(simulate(*args, CONFIG, n_frames=4, save_every=5)) - np.asarray(cells))) > 1e-9
 
 
 def row_hitting_the_floor(n=6, radius=5e-3):

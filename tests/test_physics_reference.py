@@ -88,6 +88,52 @@ def test_sedimentation_full_run_matches_reference_statistics():
     assert corners == int(data["corner_events"])
 
 
+@pytest.mark.parametrize("name, n_steps", [("walls_3d", 600), ("corners_3d", 300)])
+def test_3d_collisions_match_reference(name, n_steps):
+    # Spheres: six walls, two- and three-wall events with the tie order and the clipped contact time.
+    data = np.load(DATA / f"{name}.npz")
+    assert int(data["dim"]) == 3
+    with jax.enable_x64(True):
+        positions, velocities = simulate(
+            data["x0"],
+            data["v0"],
+            data["radius"],
+            reference_config(data),
+            n_frames=n_steps + 1,
+            save_every=1,
+            return_velocity=True,
+        )
+        assert positions.dtype == np.float64 and positions.shape == data["frames"].shape
+        np.testing.assert_allclose(np.asarray(positions), data["frames"], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(velocities), data["velocities"], rtol=0, atol=1e-10)
+        hits, multi_wall = collision_counters(data, n_steps)
+    np.testing.assert_array_equal(hits, data["collision_counts"])  # +x, -x, +y, -y, +z, -z
+    assert multi_wall == int(data["two_wall_events"]) + int(data["three_wall_events"])
+
+
+def test_3d_sedimentation_first_300_steps_match_reference():
+    # tests/data/sedimentation_3d.npz keeps frames 0..20 (steps 0, 15, ..., 300) of the reference run.
+    data = np.load(DATA / "sedimentation_3d.npz")
+    with jax.enable_x64(True):
+        positions = simulate(data["x0"], data["v0"], data["radius"], reference_config(data), n_frames=21)
+        assert positions.shape == (21, 182, 3)
+        np.testing.assert_allclose(np.asarray(positions), data["frames"], rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_3d_sedimentation_full_run_matches_reference_statistics():
+    data = np.load(DATA / "sedimentation_3d.npz")
+    with jax.enable_x64(True):
+        positions = np.asarray(simulate(data["x0"], data["v0"], data["radius"], reference_config(data), n_frames=500))
+        hits, multi_wall = collision_counters(data, 7485)
+    np.testing.assert_allclose(positions[:21], data["frames"], rtol=0, atol=1e-9)
+    assert np.max(np.abs(positions[:, :, 2].mean(axis=1) - data["mean_height"])) < 2e-3
+    hist, _ = np.histogram(positions[-1, :, 2], bins=data["final_height_hist_edges"])
+    assert np.abs(hist - data["final_height_hist"]).sum() <= 4
+    np.testing.assert_array_equal(hits, data["collision_counts"])
+    assert multi_wall == 0
+
+
 def test_sedimentation_float32_stays_close_early_and_statistically_late():
     data = np.load(DATA / "sedimentation.npz")
     positions = np.asarray(simulate(data["x0"], data["v0"], data["radius"], reference_config(data), n_frames=500))
