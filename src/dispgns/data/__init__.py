@@ -1,4 +1,4 @@
-"""Datasets: the HDF5 format, generation presets, the authors' npz importer."""
+"""Datasets: the HDF5 format, generation presets, the authors' npz importer, the LagrangeBench export."""
 
 from dispgns.data.format import (
     FORMAT_VERSION,
@@ -25,6 +25,7 @@ from dispgns.data.generate import (
     trajectory_key,
 )
 from dispgns.data.importers import import_authors_npz, read_authors_npz
+from dispgns.data.lagrangebench import export_lagrangebench
 
 __all__ = [
     "FORMAT_VERSION",
@@ -49,4 +50,5 @@ __all__ = [
     "trajectory_key",
     "import_authors_npz",
     "read_authors_npz",
+    "export_lagrangebench",
 ]

@@ -9,7 +9,7 @@ dataset                      shape       dtype   content
 ============================ =========== ======= ===============================
 ``position``                 (T, N, D)   float32 centres / L (box ``[-1, 1]^D``)
 ``radius``                   (N,)        float32 radii / L
-``particle_type``            (N,)        int     zeros (LagrangeBench-style readers)
+``particle_type``            (N,)        int     0 = particle, -1 = padding (see below)
 ``initial_position``         (N, D)      float64 centres in m the physics started from
 ``initial_velocity``         (N, D)      float64 velocities in m/s it started from
 ``initial_radius``           (N,)        float64 radii in m it ran with
@@ -18,6 +18,19 @@ dataset                      shape       dtype   content
 The three ``initial_*`` datasets are present together or not at all (imported
 data has no initial state, so it cannot be re-run). Group attributes carry
 provenance (seed, split, index, radii list, ...).
+
+``metadata.json`` holds dispgns's own fields (:class:`DatasetMetadata`) and,
+next to them, the keys LagrangeBench 0.2.0 reads (:data:`LAGRANGEBENCH_KEYS`;
+each is described in :meth:`DatasetMetadata.lagrangebench_keys`). The motion
+statistics among them are computed from the training split
+(:func:`motion_statistics`); datasets written before they existed load as
+before and simply lack them (``dispgns export lagrangebench`` computes them).
+
+Padding: particles whose ``particle_type`` is :data:`PAD_TYPE` (-1,
+LagrangeBench's ``NodeType.PAD_VALUE``) pad a trajectory to a common particle
+count (``dispgns export lagrangebench`` writes them, at the end of the particle
+axis); :func:`read_split` drops them, so every reader of dispgns sees only real
+particles.
 
 Every file is written under a temporary name in its target directory and
 renamed into place, so a reader never sees a half-written file. Every reader
@@ -48,16 +61,20 @@ __all__ = [
     "DatasetMetadata",
     "FORMAT_VERSION",
     "INITIAL_STATE_TOLERANCE",
+    "LAGRANGEBENCH_KEYS",
     "METADATA_FILE",
+    "PAD_TYPE",
     "SPLITS",
     "Trajectory",
     "load_dataset",
+    "motion_statistics",
     "radii_groups",
     "read_metadata",
     "read_split",
     "split_filename",
     "staged_directory",
     "trajectory_name",
+    "training_statistics",
     "validate_trajectory",
     "write_metadata",
     "write_split",
@@ -71,6 +88,26 @@ METADATA_FILE = "metadata.json"
 BOX_TOLERANCE = 1e-4
 # position[0] is the float32 image of initial_position / L.
 INITIAL_STATE_TOLERANCE = 1e-5
+# LagrangeBench's NodeType.PAD_VALUE: its loaders and losses skip particles of this type.
+PAD_TYPE = -1
+# Every metadata.json key LagrangeBench 0.2.0 reads (H5Dataset, case_builder, runner, metrics).
+LAGRANGEBENCH_KEYS = (
+    "dim",
+    "bounds",
+    "dt",
+    "write_every",
+    "dx",
+    "default_connectivity_radius",
+    "num_particles_max",
+    "periodic_boundary_conditions",
+    "vel_mean",
+    "vel_std",
+    "acc_mean",
+    "acc_std",
+)
+# The LagrangeBench keys derived from dispgns's own fields: checked on reading, never stored twice.
+_DERIVED_KEYS = ("dt", "write_every", "dx", "default_connectivity_radius", "periodic_boundary_conditions")
+_STAT_KEYS = ("vel_mean", "vel_std", "acc_mean", "acc_std")
 
 
 class DatasetError(ValueError):
@@ -281,6 +318,20 @@ class DatasetMetadata:
         (``None``: no limit, or not recorded). In float32 the grouping changes
         the rounding of the chaotic dynamics, so reproducing the files needs
         it as well as the seed.
+      num_particles_max: the particle count every trajectory is padded to
+        for LagrangeBench (LagrangeBench's ``num_particles_max``); ``None``:
+        the largest of ``particle_counts`` (no padding).
+      vel_mean, vel_std, acc_mean, acc_std: per axis, ``(D,)``, the mean and
+        standard deviation over the training split of the frame-to-frame
+        displacement ``x[t] - x[t-1]`` and of its difference
+        ``x[t+1] - 2 x[t] + x[t-1]``, in normalised length units (positions
+        / L) per frame, as LagrangeBench normalises its inputs and targets
+        (:func:`motion_statistics`); ``None``: not computed (older datasets).
+      position_offset: ``(D,)`` or ``None``: the split files store
+        ``position + position_offset`` (with the file attribute of the same
+        name) and ``bounds`` in ``metadata.json`` is shifted alike; readers
+        subtract it. LagrangeBench exports use 1 (box ``[0, 2]^D``), since
+        its cell lists assume coordinates in ``[0, box)``.
       dispgns_version: version of dispgns that wrote the dataset.
       format_version: version of this format.
     """
@@ -304,6 +355,12 @@ class DatasetMetadata:
     particle_counts: Mapping[str, Sequence[int]] | None = None
     bounds: tuple[tuple[float, float], ...] | None = None
     batch_size: int | None = None
+    num_particles_max: int | None = None
+    vel_mean: tuple[float, ...] | None = None
+    vel_std: tuple[float, ...] | None = None
+    acc_mean: tuple[float, ...] | None = None
+    acc_std: tuple[float, ...] | None = None
+    position_offset: tuple[float, ...] | None = None
     dispgns_version: str | None = None
     format_version: int = FORMAT_VERSION
 
@@ -312,6 +369,10 @@ class DatasetMetadata:
             object.__setattr__(self, "bounds", tuple((-1.0, 1.0) for _ in range(self.dim)))
         else:
             object.__setattr__(self, "bounds", tuple(tuple(float(v) for v in pair) for pair in self.bounds))
+        for name in _STAT_KEYS + ("position_offset",):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, (str, bytes)) and isinstance(value, Iterable):
+                object.__setattr__(self, name, tuple(value))
         if self.dispgns_version is None:
             from dispgns import __version__
 
@@ -431,6 +492,41 @@ class DatasetMetadata:
                     f"'particle_counts'[{split!r}] is {list(values)}, expected "
                     f"{self.trajectory_counts[split]} integers >= 1",
                 )
+        if self.num_particles_max is not None:
+            largest = max((max(v) for v in (self.particle_counts or {}).values()), default=1)
+            need(
+                _is_int(self.num_particles_max) and self.num_particles_max >= largest,
+                f"'num_particles_max' is {self.num_particles_max!r}, expected null or an integer >= {largest} "
+                f"(the largest particle count)",
+            )
+        present = [name for name in _STAT_KEYS if getattr(self, name) is not None]
+        need(
+            self.position_offset is None
+            or (
+                len(self.position_offset) == self.dim
+                and all(isinstance(v, (int, float)) and math.isfinite(v) for v in self.position_offset)
+            ),
+            f"'position_offset' is {self.position_offset!r}, expected null or {self.dim} finite numbers",
+        )
+        absent = [name for name in _STAT_KEYS if name not in present]
+        need(
+            not present or not absent,
+            f"'{absent[0] if absent else ''}' is missing, expected all of {list(_STAT_KEYS)} or none",
+        )
+        for name in present:
+            value = getattr(self, name)
+            need(
+                len(value) == self.dim
+                and all(
+                    isinstance(v, (int, float))
+                    and not isinstance(v, bool)
+                    and math.isfinite(v)
+                    and (v >= 0 or not name.endswith("_std"))
+                    for v in value
+                ),
+                f"'{name}' is {list(value)!r}, expected {self.dim} finite numbers"
+                + (" >= 0" if name.endswith("_std") else ""),
+            )
         try:
             config = self.physics_config
         except (TypeError, ValueError) as error:
@@ -456,7 +552,8 @@ class DatasetMetadata:
             "source": self.source,
             "preset": self.preset,
             "dim": self.dim,
-            "bounds": [list(pair) for pair in self.bounds],
+            "bounds": [[lo + o, hi + o] for (lo, hi), o in zip(self.bounds, self.position_offset or [0.0] * self.dim)],
+            "position_offset": None if self.position_offset is None else list(self.position_offset),
             "box_half_size": self.box_half_size,
             "frame_dt": self.frame_dt,
             "save_every": self.save_every,
@@ -474,13 +571,57 @@ class DatasetMetadata:
             if self.particle_counts is None
             else {s: list(self.particle_counts[s]) for s in self.splits},
             "physics": dict(self.physics),
+            **self.lagrangebench_keys(),
         }
+
+    def lagrangebench_keys(self) -> dict[str, Any]:
+        """The keys LagrangeBench 0.2.0 reads from ``metadata.json``, with this dataset's values.
+
+        All lengths are in normalised units (positions / L), times in s:
+
+        - ``dim``, ``bounds``: as dispgns's own fields (the box ``[-1, 1]^D``).
+        - ``dt``: the physics' Euler step in s (``physics.dt``);
+          ``write_every``: Euler steps between stored frames (``save_every``),
+          so ``dt * write_every`` is the time between frames (``frame_dt``).
+        - ``dx``: the typical particle spacing, here the mean diameter over
+          the training radii list, ``2 * mean(radii_m) / L`` (LagrangeBench
+          uses it as a length scale in its metrics).
+        - ``default_connectivity_radius``: the graph radius
+          (``connectivity_radius``).
+        - ``num_particles_max``: the particle count trajectories are padded
+          to (``num_particles_max``, else the largest of ``particle_counts``;
+          absent when neither is known).
+        - ``periodic_boundary_conditions``: ``[false] * D`` (walls, no
+          periodicity).
+        - ``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``: the training
+          split's motion statistics (absent when not computed; see the
+          attributes).
+        """
+        radii = [r for group in self.radii.get("train") or self.radii[self.splits[0]] for r in group["radii_m"]]
+        keys: dict[str, Any] = {
+            "dt": self.physics_config.dt,
+            "write_every": self.save_every,
+            "dx": float(f"{2.0 * float(np.mean(radii)) / self.box_half_size:.12g}"),
+            "default_connectivity_radius": self.connectivity_radius,
+            "periodic_boundary_conditions": [False] * self.dim,
+        }
+        if self.num_particles_max is not None:
+            keys["num_particles_max"] = self.num_particles_max
+        elif self.particle_counts is not None:
+            keys["num_particles_max"] = max(max(v) for v in self.particle_counts.values())
+        for name in _STAT_KEYS:
+            if getattr(self, name) is not None:
+                keys[name] = [float(v) for v in getattr(self, name)]
+        return keys
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], where: str = METADATA_FILE) -> DatasetMetadata:
         """Inverse of :meth:`to_dict`; raises :class:`DatasetError` on missing or unknown fields."""
         if not isinstance(values, Mapping):
             _fail(where, f"expected a JSON object, got {type(values).__name__}")
+        values = dict(values)
+        # The LagrangeBench keys derived from dispgns's fields are checked, not stored twice.
+        derived = {name: values.pop(name) for name in _DERIVED_KEYS if name in values}
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - set(fields))
         if unknown:
@@ -493,15 +634,36 @@ class DatasetMetadata:
         for name in required:
             if name not in values:
                 _fail(where, f"missing field {name!r}")
-        values = dict(values)
+        counts = values.get("particle_counts")
+        if isinstance(counts, Mapping) and counts and all(isinstance(v, Sequence) and v for v in counts.values()):
+            if values.get("num_particles_max") == max(max(v) for v in counts.values()):
+                values.pop("num_particles_max")  # no padding: derived from particle_counts
         if values.get("bounds") is not None:
             values["bounds"] = tuple(tuple(pair) for pair in values["bounds"])
+            offset = values.get("position_offset")
+            if isinstance(offset, Sequence) and len(offset) == len(values["bounds"]):
+                # metadata.json shows the stored (shifted) box; the object keeps the normalised one.
+                try:
+                    values["bounds"] = tuple((lo - o, hi - o) for (lo, hi), o in zip(values["bounds"], offset))
+                except TypeError:
+                    _fail(where, f"'position_offset' is {offset!r}, expected {len(offset)} numbers")
         try:
-            return cls(**values)
+            metadata = cls(**values)
         except DatasetError as error:
             raise DatasetError(str(error).replace(METADATA_FILE, where, 1)) from None
         except (TypeError, ValueError) as error:
             _fail(where, str(error))
+        expected = metadata.lagrangebench_keys()
+        for name, value in derived.items():
+            want = expected[name]
+            same = (
+                value == want
+                if isinstance(want, (list, bool, int)) and not isinstance(want, float)
+                else isinstance(value, (int, float)) and math.isclose(value, want, rel_tol=1e-9)
+            )
+            if not same:
+                _fail(where, f"'{name}' is {value!r}, expected {want!r} (LagrangeBench key derived from the dataset)")
+        return metadata
 
     def expected_for(self, split: str) -> dict[str, Any]:
         """``{"dim", "n_frames", "count"[, "particles"]}`` the file of ``split`` must match."""
@@ -649,6 +811,9 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
     with file:
         # Rollouts written by `dispgns evaluate` may leave the box (see validate_trajectory).
         predicted = bool(file.attrs.get("predicted", False))
+        # Exports for LagrangeBench store positions + offset (DatasetMetadata.position_offset).
+        offset = file.attrs.get("position_offset")
+        offset = None if offset is None else np.asarray(offset, np.float32)
         groups = sorted(file.keys())
         if "count" in expected and len(groups) != expected["count"]:
             _fail(name, f"holds {len(groups)} trajectories, expected {expected['count']} (metadata.json)")
@@ -682,6 +847,9 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
                     _fail(
                         where, f"missing field {missing!r}, expected because metadata.json has has_initial_state = true"
                     )
+            fields = _drop_padding(fields)
+            if offset is not None and np.ndim(fields["position"]) == 3:
+                fields["position"] = fields["position"] - offset
             attrs = {key: _json_value(value) for key, value in group.attrs.items()}
             trajectory = Trajectory(attrs=attrs, **fields)
             if dim is None:
@@ -704,6 +872,83 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
                 )
             trajectories.append(trajectory)
     return trajectories
+
+
+def _drop_padding(fields: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Remove the particles of type :data:`PAD_TYPE` (written by the LagrangeBench export)."""
+    kinds = fields["particle_type"]
+    if kinds.ndim != 1 or not np.issubdtype(kinds.dtype, np.integer) or not np.any(kinds == PAD_TYPE):
+        return fields
+    keep = kinds != PAD_TYPE
+    out = {}
+    for name, value in fields.items():
+        if name == "position" and value.ndim == 3 and value.shape[1] == keep.size:
+            out[name] = value[:, keep]
+        elif value.ndim >= 1 and value.shape[0] == keep.size:
+            out[name] = value[keep]
+        else:
+            out[name] = value  # a shape error, reported by validate_trajectory
+    return out
+
+
+def motion_statistics(positions: Iterable[np.ndarray], dim: int | None = None) -> dict[str, list[float]]:
+    """LagrangeBench's normalisation statistics of a set of trajectories.
+
+    Args:
+      positions: trajectories, each ``(T, N, D)`` positions (normalised units,
+        only real particles), ``T >= 3``.
+      dim: expected ``D`` (``None``: taken from the first trajectory).
+
+    Returns:
+      ``{"vel_mean", "vel_std", "acc_mean", "acc_std"}``, each a list of ``D``
+      floats: the mean and (population) standard deviation per axis, over
+      every particle and frame of every trajectory, of the frame-to-frame
+      displacement ``x[t] - x[t-1]`` and of ``x[t+1] - 2 x[t] + x[t-1]``, in
+      normalised length units per frame (LagrangeBench divides by no time
+      step). Accumulated in float64.
+    """
+    sums = None
+    for index, position in enumerate(positions):
+        position = np.asarray(position, np.float64)
+        if position.ndim != 3 or position.shape[0] < 3 or (dim is not None and position.shape[2] != dim):
+            raise DatasetError(
+                f"trajectory {index}: positions have shape {position.shape}, expected (T >= 3, N, "
+                f"{dim if dim is not None else 'D'}) for motion statistics"
+            )
+        dim = position.shape[2]
+        velocity = np.diff(position, axis=0).reshape(-1, dim)
+        acceleration = np.diff(position, n=2, axis=0).reshape(-1, dim)
+        if sums is None:
+            sums = np.zeros((6, dim))
+        sums += [
+            [len(velocity)] * dim,
+            velocity.sum(0),
+            (velocity**2).sum(0),
+            [len(acceleration)] * dim,
+            acceleration.sum(0),
+            (acceleration**2).sum(0),
+        ]
+    if sums is None:
+        raise DatasetError("no trajectories given for motion statistics, expected at least one")
+    out = {}
+    for prefix, (count, total, squares) in (("vel", sums[0:3]), ("acc", sums[3:6])):
+        mean = total / count
+        out[f"{prefix}_mean"] = [float(v) for v in mean]
+        out[f"{prefix}_std"] = [float(v) for v in np.sqrt(np.maximum(squares / count - mean**2, 0.0))]
+    return out
+
+
+def training_statistics(splits: Mapping[str, Sequence[Trajectory]]) -> dict[str, list[float] | None]:
+    """:class:`DatasetMetadata`'s motion statistics for ``{split: trajectories}``: from ``train``.
+
+    Returns the four fields (see :func:`motion_statistics`), or all ``None``
+    when there is no training split or its trajectories have fewer than 3
+    frames.
+    """
+    train = splits.get("train") or []
+    if not train or any(t.n_frames < 3 for t in train):
+        return dict.fromkeys(_STAT_KEYS)
+    return motion_statistics([t.position for t in train])
 
 
 def load_dataset(

@@ -40,6 +40,7 @@ from dispgns.data.format import (
     radii_groups,
     split_filename,
     staged_directory,
+    training_statistics,
     write_metadata,
     write_split,
 )
@@ -727,6 +728,7 @@ def generate_dataset(
             source="generated",
             preset=spec.name,
             particle_counts={split: [t.n_particles for t in group] for split, group in trajectories.items()},
+            **training_statistics(trajectories),
         )
         write_metadata(staging, metadata)
     return metadata

@@ -28,6 +28,7 @@ from dispgns.data.format import (
     read_metadata,
     split_filename,
     staged_directory,
+    training_statistics,
     write_metadata,
     write_split,
 )
@@ -150,6 +151,13 @@ def read_authors_npz(path: str | os.PathLike, *, trust_pickle: bool = False) -> 
     return out
 
 
+def _statistics_of(metadata: DatasetMetadata | None) -> dict:
+    """The motion statistics an earlier import recorded (kept when another split is added)."""
+    if metadata is None:
+        return {}
+    return {name: getattr(metadata, name) for name in ("vel_mean", "vel_std", "acc_mean", "acc_std")}
+
+
 def _radii_list_m(trajectories: list[Trajectory], box_half_size: float) -> list[float]:
     """The distinct radii in m (rounded to 0.1 um, which undoes the float32 normalisation)."""
     values = np.concatenate([t.radius.astype(np.float64) for t in trajectories]) * box_half_size
@@ -253,6 +261,7 @@ def import_authors_npz(
         has_initial_state=False,
         source=SOURCE,
         particle_counts={s: particles[s] for s in ordered},
+        **(training_statistics({split: trajectories}) if split == "train" else _statistics_of(existing)),
     )
 
     if existing is None:
