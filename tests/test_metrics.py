@@ -365,3 +365,121 @@ def test_rollout_metrics_needs_two_input_frames():
     truth = np.zeros((10, 3, 2))
     with pytest.raises(ValueError, match="input_frames must be an integer >= 2"):
         M.rollout_metrics(truth, truth, np.full(3, 0.03), box_half_size=0.1, input_frames=1)
+
+
+# ---------------------------------------------------------------------------
+# statistics: front, settling, bed, g(r), distribution distances
+# ---------------------------------------------------------------------------
+
+
+def test_front_height_is_numpys_quantile_and_ignores_padding():
+    rng = np.random.default_rng(3)
+    heights = rng.normal(size=(4, 30, 2)).astype(np.float32)
+    expected = np.quantile(heights[..., -1], 0.9, axis=1)
+    np.testing.assert_allclose(M.front_height(heights, quantile=0.9), expected, rtol=1e-5, atol=1e-6)
+    padded = np.concatenate([heights, np.full((4, 5, 2), 1e6, np.float32)], axis=1)
+    mask = np.arange(35) < 30
+    np.testing.assert_allclose(
+        jax.jit(M.front_height, static_argnames="quantile")(padded, mask, quantile=0.9), expected, rtol=1e-5, atol=1e-6
+    )
+
+
+def test_settling_velocity_of_a_linear_fall():
+    # Heights falling 2e-3 L per frame of 1.5 ms, L = 0.1 m: -2e-4 m / 1.5e-3 s = -0.1333 m/s.
+    heights = 0.5 - 2e-3 * np.arange(50)
+    velocity = M.settling_velocity(heights, frame_dt=1.5e-3, box_half_size=L)
+    assert float(velocity) == pytest.approx(-2e-3 * L / 1.5e-3, rel=1e-5)
+
+
+def test_height_profile_and_bed_fraction_by_hand():
+    # Four disks of radius 0.1 at heights -0.95, -0.9 (slab 0 of [-1, -0.5)), -0.4 (slab 1) and 0.6 (slab 3);
+    # a fifth, padding, must not count.
+    frame = np.array([[0.0, -0.95], [0.5, -0.9], [-0.5, -0.4], [0.2, 0.6], [0.0, -0.99]], np.float32)
+    radius = np.full(5, 0.1, np.float32)
+    mask = np.array([True, True, True, True, False])
+    counts, fraction = M.height_profile(frame, radius, mask, bins=4)
+    np.testing.assert_allclose(counts, [2, 1, 0, 1])
+    disk = math.pi * 0.01
+    np.testing.assert_allclose(fraction, np.array([2, 1, 0, 1]) * disk / (0.5 * 2.0), rtol=1e-6)
+    # Front at the top quantile (1.0): the highest disk, 0.6; bed = 4 disks over 2 x 1.6.
+    value = M.bed_area_fraction(frame, radius, mask, quantile=1.0)
+    assert float(value) == pytest.approx(4 * disk / (2.0 * 1.6), rel=1e-6)
+
+
+def test_radial_distribution_of_a_square_lattice_by_hand():
+    # n x n lattice of spacing s: ordered pairs at each distance counted by hand; the shells (width
+    # 0.0145) put every lattice distance well inside one shell, and 3 s lies beyond r_max.
+    n, s, bins, r_max, volume = 6, 0.1, 20, 0.29, 4.0
+    grid = np.stack(np.meshgrid(np.arange(n), np.arange(n)), -1).reshape(-1, 2) * s
+    r, g = jax.jit(M.radial_distribution, static_argnames=("r_max", "bins", "volume"))(
+        grid.astype(np.float32) + 0.013, r_max=r_max, bins=bins, volume=volume
+    )
+    width = r_max / bins
+    density = n * n / volume
+    expected = np.zeros(bins)
+    pairs = {
+        s: 4 * n * (n - 1),
+        s * math.sqrt(2): 4 * (n - 1) ** 2,
+        2 * s: 4 * n * (n - 2),
+        s * math.sqrt(5): 8 * (n - 1) * (n - 2),
+        s * math.sqrt(8): 4 * (n - 2) ** 2,
+    }
+    for distance, count in pairs.items():
+        k = int(distance / width)
+        expected[k] = count / (n * n * density * math.pi * ((k + 1) ** 2 - k**2) * width**2)
+    np.testing.assert_allclose(r, (np.arange(bins) + 0.5) * width, rtol=1e-6)
+    np.testing.assert_allclose(g, expected, rtol=1e-5)
+
+
+def test_radial_distribution_matches_freud_overall_and_per_size_pair():
+    freud = pytest.importorskip("freud")
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-1, 1, (150, 2)).astype(np.float32)
+    large = rng.random(150) < 0.4
+    side = 10.0  # a box with no periodic image within r_max: freud's g(r) of the open system
+    box = freud.box.Box.square(side)
+    flat = np.concatenate([points, np.zeros((150, 1), np.float32)], axis=1)
+    for neighbours, queries in ((None, None), (large, ~large), (large, large)):
+        rdf = freud.density.RDF(bins=20, r_max=0.4, normalization_mode="exact")
+        system = flat if neighbours is None else flat[neighbours]
+        # freud drops a particle's pair with itself only when the query points are the points themselves.
+        same = queries is None or queries is neighbours
+        rdf.compute(system=(box, system), query_points=None if same else flat[queries], reset=True)
+        r, g = M.radial_distribution(points, r_max=0.4, bins=20, volume=side**2, mask=neighbours, query_mask=queries)
+        np.testing.assert_allclose(r, rdf.bin_centers, rtol=1e-5)
+        np.testing.assert_allclose(g, rdf.rdf, rtol=1e-4, atol=1e-4)
+
+
+def test_sinkhorn_divergence_zero_for_identical_and_shift_squared_for_translate():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(60, 2)).astype(np.float32)
+    shift = np.array([0.3, -0.2], np.float32)
+    divergence = jax.jit(M.sinkhorn_divergence, static_argnames="epsilon")
+    assert abs(float(divergence(x, x, epsilon=1e-2))) < 1e-5
+    # Squared Euclidean cost: the debiased divergence of a translate is |t|^2.
+    assert float(divergence(x, x + shift, epsilon=1e-2)) == pytest.approx(float(shift @ shift), rel=2e-2)
+    # Padding points (masked out, placed far away) change nothing.
+    padded = np.concatenate([x, np.full((4, 2), 50.0, np.float32)])
+    mask = np.arange(64) < 60
+    value = M.sinkhorn_divergence(padded, x + shift, epsilon=1e-2, mask_x=mask)
+    assert float(value) == pytest.approx(float(shift @ shift), rel=2e-2)
+
+
+def test_maximum_mean_discrepancy_is_symmetric_zero_on_equal_sets_and_by_hand():
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(40, 2)).astype(np.float32)
+    y = rng.normal(size=(30, 2)).astype(np.float32) + 0.5
+    bandwidths = (0.3, 1.0)
+    xy = M.maximum_mean_discrepancy(x, y, bandwidths=bandwidths)
+    assert float(xy) > 0
+    assert float(M.maximum_mean_discrepancy(y, x, bandwidths=bandwidths)) == pytest.approx(float(xy), rel=1e-5)
+    assert abs(float(M.maximum_mean_discrepancy(x, x[::-1], bandwidths=bandwidths))) < 1e-6
+    # One point each, distance d: 2 sum_s (1 - exp(-d^2 / 2 s^2)).
+    d2 = 0.5**2 + 0.2**2
+    one = M.maximum_mean_discrepancy(np.zeros((1, 2)), np.array([[0.5, 0.2]]), bandwidths=bandwidths)
+    expected = 2 * sum(1 - math.exp(-d2 / (2 * s * s)) for s in bandwidths)
+    assert float(one) == pytest.approx(expected, rel=1e-5)
+    # Masked padding changes nothing.
+    padded = np.concatenate([y, np.full((3, 2), 9.0, np.float32)])
+    masked = M.maximum_mean_discrepancy(x, padded, bandwidths=bandwidths, mask_y=np.arange(33) < 30)
+    assert float(masked) == pytest.approx(float(xy), rel=1e-5)

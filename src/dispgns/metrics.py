@@ -46,6 +46,13 @@ from dispgns.physics import PhysicsConfig, particle_mass
 
 __all__ = [
     "DEFAULT_HORIZONS",
+    "bed_area_fraction",
+    "front_height",
+    "height_profile",
+    "maximum_mean_discrepancy",
+    "radial_distribution",
+    "settling_velocity",
+    "sinkhorn_divergence",
     "constant_velocity_rollout",
     "horizon_mse",
     "kinetic_energy",
@@ -353,6 +360,228 @@ def mean_height(positions, mask=None) -> jnp.ndarray:
     weight = _weights(mask, positions.shape[1], positions.dtype)
     height = jnp.where(weight > 0, positions[..., -1], 0.0)
     return height @ weight / jnp.sum(weight)
+
+
+# ----------------------------------------------------------------------------
+# statistics of the suspension (what chaos cannot hide)
+# ----------------------------------------------------------------------------
+
+
+def _default_bounds(dim: int, dtype) -> jnp.ndarray:
+    return jnp.tile(jnp.asarray([[-1.0, 1.0]], dtype), (dim, 1))
+
+
+def _particle_volume(radius, dim: int):
+    """Area (``D = 2``) or volume (``D = 3``) of each particle, in the radius' units to the power ``D``."""
+    return math.pi * radius**2 if dim == 2 else (4.0 / 3.0) * math.pi * radius**3
+
+
+def front_height(positions, mask=None, *, quantile: float = 0.95) -> jnp.ndarray:
+    """Height of the suspension front: the ``quantile`` of the particles' heights, per frame.
+
+    The front of a settling suspension is the level below which nearly all
+    particles lie; a quantile (``np.quantile``'s linear interpolation) rather
+    than the maximum, so that one straggler does not move it.
+
+    Args:
+      positions: ``(T, N, D)`` normalised; the last axis is the height.
+      mask: optional ``(N,)`` bool, ``False`` for padding.
+      quantile: static, in ``[0, 1]``.
+
+    Returns:
+      ``(T,)`` front height per frame, normalised units.
+    """
+    if not 0.0 <= quantile <= 1.0:
+        raise ValueError(f"quantile must lie in [0, 1], got {quantile}")
+    positions = _as_trajectory("positions", positions)
+    n = positions.shape[1]
+    weight = _weights(mask, n, positions.dtype)
+    # Padding sorts last (+inf) and the quantile index only spans the real particles.
+    heights = jnp.sort(jnp.where(weight > 0, positions[..., -1], jnp.inf), axis=-1)
+    index = quantile * (jnp.sum(weight) - 1.0)
+    lower = jnp.clip(jnp.floor(index).astype(jnp.int32), 0, n - 1)
+    upper = jnp.clip(lower + 1, 0, jnp.sum(weight).astype(jnp.int32) - 1)
+    fraction = (index - lower).astype(positions.dtype)
+    low = jnp.take(heights, lower, axis=-1)
+    high = jnp.take(heights, upper, axis=-1)
+    return low + fraction * (high - low)
+
+
+def settling_velocity(heights, *, frame_dt: float, box_half_size: float) -> jnp.ndarray:
+    """Least-squares slope of a height curve, in m/s (negative when settling).
+
+    Args:
+      heights: ``(T,)`` normalised heights at frames spaced ``frame_dt`` s
+        apart (e.g. :func:`mean_height` or :func:`front_height`).
+      frame_dt: frame spacing in s. box_half_size: ``L`` in m.
+
+    Returns:
+      Scalar velocity in m/s (multiply by 1e3 for mm/s).
+    """
+    heights = jnp.asarray(heights)
+    if heights.ndim != 1 or heights.shape[0] < 2:
+        raise ValueError(f"heights must have shape (T,) with T >= 2, got {heights.shape}")
+    t = jnp.arange(heights.shape[0], dtype=heights.dtype) * frame_dt
+    t = t - jnp.mean(t)
+    slope = jnp.sum(t * (heights - jnp.mean(heights))) / jnp.sum(t * t)
+    return slope * box_half_size
+
+
+def height_profile(frame, radius, mask=None, *, bins: int = 20, bounds=None) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Particle count and area (volume) fraction per height bin of one frame.
+
+    The box's height range is cut into ``bins`` equal slabs; a particle counts
+    in the slab of its centre, with all of its area (``D = 2``) or volume
+    (``D = 3``) (slabs several diameters thick make the split negligible).
+
+    Args:
+      frame: ``(N, D)`` normalised positions. radius: ``(N,)`` normalised.
+      mask: optional ``(N,)`` bool.
+      bins: static number of slabs.
+      bounds: ``(D, 2)`` box in normalised units (default ``[-1, 1]^D``).
+
+    Returns:
+      ``(counts, fraction)``, both ``(bins,)``: particles per slab (float) and
+      the fraction of the slab's area (volume) they fill. Slab ``k`` spans
+      heights ``lo + k h .. lo + (k + 1) h``, ``h = (hi - lo) / bins``.
+    """
+    frame = jnp.asarray(frame)
+    if frame.ndim != 2:
+        raise ValueError(f"frame must have shape (N, D), got {frame.shape}")
+    n, dim = frame.shape
+    bounds = _default_bounds(dim, frame.dtype) if bounds is None else jnp.asarray(bounds, frame.dtype)
+    radius = _as_radius(radius, n, frame.dtype)
+    weight = _weights(mask, n, frame.dtype)
+    lo, hi = bounds[-1, 0], bounds[-1, 1]
+    slab = (hi - lo) / bins
+    index = jnp.clip(jnp.floor((frame[:, -1] - lo) / slab).astype(jnp.int32), 0, bins - 1)
+    one_hot = jax.nn.one_hot(index, bins, dtype=frame.dtype) * weight[:, None]
+    counts = jnp.sum(one_hot, axis=0)
+    width = jnp.prod(bounds[:-1, 1] - bounds[:-1, 0])
+    fraction = (_particle_volume(radius, dim) @ one_hot) / (slab * width)
+    return counts, fraction
+
+
+def bed_area_fraction(frame, radius, mask=None, *, quantile: float = 0.95, bounds=None) -> jnp.ndarray:
+    """Area (volume) fraction of a bed: the particles' total area over the box below the front.
+
+    Args:
+      frame: ``(N, D)`` normalised positions. radius: ``(N,)`` normalised.
+      mask: optional ``(N,)`` bool. quantile: see :func:`front_height`.
+      bounds: ``(D, 2)`` box (default ``[-1, 1]^D``).
+
+    Returns:
+      Scalar: ``sum_i V(a_i) / (W (h_front - lo))`` with ``W`` the box's
+      horizontal extent and ``lo`` its floor.
+    """
+    frame = jnp.asarray(frame)
+    n, dim = frame.shape
+    bounds = _default_bounds(dim, frame.dtype) if bounds is None else jnp.asarray(bounds, frame.dtype)
+    radius = _as_radius(radius, n, frame.dtype)
+    weight = _weights(mask, n, frame.dtype)
+    front = front_height(frame[None], mask, quantile=quantile)[0]
+    width = jnp.prod(bounds[:-1, 1] - bounds[:-1, 0])
+    return (_particle_volume(radius, dim) @ weight) / (width * (front - bounds[-1, 0]))
+
+
+def radial_distribution(
+    frame, *, r_max: float, bins: int, volume: float, mask=None, query_mask=None
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Radial distribution function g(r) of one frame (no periodic images).
+
+    Counts, for every query particle ``i`` (``query_mask``), the particles
+    ``j != i`` (``mask``) at distance ``r`` in each shell, and divides by the
+    ideal-gas count ``N_query (N / volume) shell``: freud's
+    ``freud.density.RDF`` with ``normalization_mode="exact"`` on a box large
+    enough to have no images (tested). Two size classes give the partial
+    g(r) of the pair with ``query_mask`` = one class and ``mask`` = the other.
+
+    Args:
+      frame: ``(N, D)`` positions (any length unit; ``r_max`` and ``volume``
+        in the same unit).
+      r_max: static largest distance. bins: static number of shells.
+      volume: area (``D = 2``) or volume (``D = 3``) the density is taken over.
+      mask: optional ``(N,)`` bool, the particles counted as neighbours.
+      query_mask: optional ``(N,)`` bool, the particles whose neighbours are
+        counted (default ``mask``).
+
+    Returns:
+      ``(r, g)``, both ``(bins,)``: shell centres and g(r) (``nan`` when there
+      are no query or neighbour particles).
+    """
+    frame = jnp.asarray(frame)
+    if frame.ndim != 2:
+        raise ValueError(f"frame must have shape (N, D), got {frame.shape}")
+    n, dim = frame.shape
+    weight = _weights(mask, n, frame.dtype)
+    query = weight if query_mask is None else _weights(query_mask, n, frame.dtype)
+    edges = jnp.linspace(0.0, r_max, bins + 1, dtype=frame.dtype)
+    dist2 = sum((frame[:, d, None] - frame[None, :, d]) ** 2 for d in range(dim))
+    pair = query[:, None] * weight[None, :] * (1.0 - jnp.eye(n, dtype=frame.dtype))
+    # Squared distances against squared edges: no sqrt, and [lo, hi) shells as freud.
+    index = jnp.sum(dist2[..., None] >= edges[1:] ** 2, axis=-1)
+    counts = jnp.sum(jax.nn.one_hot(index, bins + 1, dtype=frame.dtype) * pair[..., None], axis=(0, 1))[:bins]
+    shell = (math.pi if dim == 2 else 4.0 * math.pi / 3.0) * (edges[1:] ** dim - edges[:-1] ** dim)
+    ideal = jnp.sum(query) * (jnp.sum(weight) / volume) * shell
+    return 0.5 * (edges[1:] + edges[:-1]), counts / ideal
+
+
+def sinkhorn_divergence(x, y, *, epsilon: float, mask_x=None, mask_y=None) -> jnp.ndarray:
+    """Debiased Sinkhorn divergence between two point clouds (``ott-jax``).
+
+    ``S(x, y) = OT_eps(x, y) - (OT_eps(x, x) + OT_eps(y, y)) / 2`` with the
+    squared Euclidean cost ``|x - y|^2`` and uniform weights on the real
+    points: 0 for identical clouds, ``|t|^2`` for a cloud and its translate by
+    ``t``, in the points' unit squared.
+
+    Args:
+      x: ``(N, D)``. y: ``(M, D)``.
+      epsilon: static entropic regularisation, in the points' unit squared
+        (about the squared distance below which points are not told apart).
+      mask_x, mask_y: optional bool masks of the real points.
+
+    Returns:
+      Scalar divergence.
+    """
+    from ott.geometry import pointcloud
+    from ott.tools import sinkhorn_divergence as ott_divergence
+
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    a = _weights(mask_x, x.shape[0], x.dtype)
+    b = _weights(mask_y, y.shape[0], y.dtype)
+    value, _ = ott_divergence.sinkhorn_divergence(
+        pointcloud.PointCloud, x, y, a=a / jnp.sum(a), b=b / jnp.sum(b), epsilon=epsilon
+    )
+    return value
+
+
+def maximum_mean_discrepancy(x, y, *, bandwidths: Sequence[float], mask_x=None, mask_y=None) -> jnp.ndarray:
+    """Squared maximum mean discrepancy between two point clouds (biased estimate).
+
+    ``MMD^2 = E k(x, x') + E k(y, y') - 2 E k(x, y)`` with the sum of Gaussian
+    kernels ``k(u, v) = sum_s exp(-|u - v|^2 / (2 s^2))`` over ``bandwidths``,
+    means over the real points (pairs with themselves included, so it is
+    ``>= 0``, symmetric, and 0 for equal clouds).
+
+    Args:
+      x: ``(N, D)``. y: ``(M, D)``.
+      bandwidths: static kernel widths, in the points' unit.
+      mask_x, mask_y: optional bool masks of the real points.
+
+    Returns:
+      Scalar ``MMD^2`` (dimensionless; between 0 and ``2 len(bandwidths)``).
+    """
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    a = _weights(mask_x, x.shape[0], x.dtype)
+    b = _weights(mask_y, y.shape[0], y.dtype)
+    a, b = a / jnp.sum(a), b / jnp.sum(b)
+
+    def mean_kernel(u, wu, v, wv):
+        dist2 = sum((u[:, d, None] - v[None, :, d]) ** 2 for d in range(u.shape[1]))
+        k = sum(jnp.exp(-dist2 / (2.0 * s * s)) for s in bandwidths)
+        return wu @ k @ wv
+
+    return mean_kernel(x, a, x, a) + mean_kernel(y, b, y, b) - 2.0 * mean_kernel(x, a, y, b)
 
 
 # ----------------------------------------------------------------------------
