@@ -12,7 +12,7 @@ import importlib
 import sys
 
 # Subcommand modules, in the order shown by --help.
-_COMMANDS = ("demo", "generate", "import_npz", "train", "evaluate", "render", "export")
+_COMMANDS = ("demo", "generate", "import_npz", "import_files", "train", "evaluate", "render", "export")
 
 
 class CLIError(Exception):

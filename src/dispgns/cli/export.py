@@ -10,7 +10,7 @@ from dispgns.cli import CLIError
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "export",
-        help="write a dataset for other tools (LagrangeBench, ...)",
+        help="write a dataset or rollout for other tools (LagrangeBench, OVITO, HOOMD, ParaView)",
         description="Write a dispgns dataset in a format other tools read. Refuses an existing non-empty "
         "output directory unless --overwrite; writes it whole or not at all.",
     )
@@ -30,6 +30,28 @@ def register(subparsers) -> None:
     lb.add_argument("--out", required=True, metavar="DIR", help="export directory to create")
     lb.add_argument("--overwrite", action="store_true", help="replace an earlier export in DIR")
     lb.set_defaults(func=run_lagrangebench)
+    helps = {
+        "extxyz": "extended XYZ, one multi-frame file per trajectory (OVITO, ASE): radius column, Lattice, Time",
+        "gsd": "GSD, one file per trajectory (HOOMD-blue, OVITO): diameters, centred box, time in the log",
+        "vtu": "a ParaView series per trajectory (NAME.vtu.series + one .vtu per frame, point data radius)",
+    }
+    for fmt, text in helps.items():
+        sub = formats.add_parser(
+            fmt,
+            help=text,
+            description=f"Write trajectories as {text}. Lengths in m, times in s. SOURCE is a dataset "
+            "directory or one .h5 split file (e.g. a rollout from dispgns evaluate: OUT/predictions/test.h5, "
+            "with --data DATASET for its L and frame spacing). OUT/export.json records what was written.",
+        )
+        sub.add_argument("source", metavar="SOURCE", help="dataset directory or .h5 split file")
+        sub.add_argument("--out", required=True, metavar="DIR", help="export directory to create")
+        sub.add_argument("--split", action="append", metavar="SPLIT", help="split(s) of a dataset (default all)")
+        sub.add_argument("--index", action="append", type=int, metavar="I", help="trajectory index(es) (default all)")
+        sub.add_argument("--data", metavar="DATASET", help="the dataset of a split file (L, frame spacing)")
+        sub.add_argument("--L", type=float, dest="box_half_size", metavar="METRES", help="box half-size L in m")
+        sub.add_argument("--frame-dt", type=float, metavar="SECONDS", help="time between frames in s")
+        sub.add_argument("--overwrite", action="store_true", help="replace an earlier export in DIR")
+        sub.set_defaults(func=run_format)
 
 
 def run_lagrangebench(args: argparse.Namespace) -> int:
@@ -54,4 +76,29 @@ def run_lagrangebench(args: argparse.Namespace) -> int:
             f"wrote {args.out}/{UNSEEN_DIRECTORY}: the {unseen.trajectory_counts['test']} test_unseen trajectories "
             f"as its test and valid splits (train.h5 shared with {args.out})"
         )
+    return 0
+
+
+def run_format(args: argparse.Namespace) -> int:
+    from dispgns.data import DatasetError, read_metadata
+    from dispgns.data.formats import export_trajectories
+
+    try:
+        metadata = read_metadata(args.data) if args.data else None
+        written = export_trajectories(
+            args.source,
+            args.out,
+            args.format,
+            splits=args.split,
+            indices=args.index,
+            metadata=metadata,
+            box_half_size=args.box_half_size,
+            frame_dt=args.frame_dt,
+            overwrite=args.overwrite,
+        )
+    except (FileExistsError, DatasetError, ModuleNotFoundError) as error:
+        raise CLIError(str(error)) from None
+    except OSError as error:
+        raise CLIError(f"cannot export {args.source} to {args.out}: {error}") from None
+    print(f"wrote {args.out}: {len(written)} {args.format} file(s) (m, s), listed in {args.out}/export.json")
     return 0

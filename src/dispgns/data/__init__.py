@@ -25,6 +25,7 @@ from dispgns.data.generate import (
     trajectory_key,
 )
 from dispgns.data.importers import import_authors_npz, read_authors_npz
+from dispgns.data.formats import export_trajectories, import_trajectory_files
 from dispgns.data.lagrangebench import export_lagrangebench
 
 __all__ = [
@@ -51,4 +52,6 @@ __all__ = [
     "import_authors_npz",
     "read_authors_npz",
     "export_lagrangebench",
+    "export_trajectories",
+    "import_trajectory_files",
 ]

@@ -39,6 +39,7 @@ __all__ = [
     "UntrustedPickleError",
     "import_authors_npz",
     "read_authors_npz",
+    "write_imported",
 ]
 
 SOURCE = "authors_npz"
@@ -203,8 +204,38 @@ def import_authors_npz(
         raise ValueError(f"physics.box_half_size = {physics.box_half_size} m differs from L = {L} m")
     read = read_authors_npz(path, trust_pickle=trust_pickle)
     trajectories = [trajectory for _, trajectory in read]
-    dim, n_frames = trajectories[0].dim, trajectories[0].n_frames
+    return write_imported(
+        trajectories,
+        out_dir,
+        split=split,
+        physics=physics,
+        save_every=save_every,
+        source=SOURCE,
+        source_name=Path(path).name,
+        overwrite=overwrite,
+    )
 
+
+def write_imported(
+    trajectories: list[Trajectory],
+    out_dir: str | os.PathLike,
+    *,
+    split: str,
+    physics: PhysicsConfig,
+    save_every: int,
+    source: str,
+    source_name: str,
+    overwrite: bool = False,
+) -> DatasetMetadata:
+    """Write imported ``trajectories`` (normalised units, no initial state) as split ``split`` of ``out_dir``.
+
+    ``out_dir`` is new, empty, or an earlier import of the same ``source``, whose metadata is updated
+    (dimension, frames, L and ``save_every`` must agree). Returns the dataset's metadata.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}, expected one of {list(SPLITS)}")
+    dim, n_frames = trajectories[0].dim, trajectories[0].n_frames
+    path = source_name
     out_dir = Path(out_dir).absolute()
     existing = None
     if out_dir.exists() and not out_dir.is_dir():
@@ -216,10 +247,10 @@ def import_authors_npz(
                 f"choose a new or empty directory"
             )
         existing = read_metadata(out_dir)
-        if existing.source != SOURCE:
+        if existing.source != source:
             raise FileExistsError(
                 f"{out_dir} holds a {existing.source} dataset; imported splits can only be "
-                f"added to a dataset imported from the authors' files"
+                f"added to a dataset imported the same way ({source})"
             )
         if split in existing.trajectory_counts and not overwrite:
             raise FileExistsError(
@@ -242,7 +273,7 @@ def import_authors_npz(
     particles = dict(existing.particle_counts or {}) if existing else {}
     counts[split] = len(trajectories)
     group = radii_groups([(len(trajectories), _radii_list_m(trajectories, physics.box_half_size))])[0]
-    group["source_file"] = Path(path).name
+    group["source_file"] = source_name
     radii[split] = [group]
     particles[split] = [t.n_particles for t in trajectories]
     seen = radii.get("train") or [g for groups in radii.values() for g in groups]
@@ -259,7 +290,7 @@ def import_authors_npz(
         radii={s: radii[s] for s in ordered},
         physics=physics.to_dict(),
         has_initial_state=False,
-        source=SOURCE,
+        source=source,
         particle_counts={s: particles[s] for s in ordered},
         **(training_statistics({split: trajectories}) if split == "train" else _statistics_of(existing)),
     )
