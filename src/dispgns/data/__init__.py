@@ -13,6 +13,7 @@ from dispgns.data.format import (
     write_metadata,
     write_split,
 )
+from dispgns.data.formats import export_trajectories, import_trajectory_files
 from dispgns.data.generate import (
     PRESETS,
     DatasetSpec,
@@ -25,7 +26,6 @@ from dispgns.data.generate import (
     trajectory_key,
 )
 from dispgns.data.importers import import_authors_npz, read_authors_npz
-from dispgns.data.formats import export_trajectories, import_trajectory_files
 from dispgns.data.lagrangebench import export_lagrangebench
 
 __all__ = [
