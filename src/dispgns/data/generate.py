@@ -353,7 +353,7 @@ def sample_initial_states(
                 progress(i + 1)
         return states
 
-    half = config.box_half_size
+    half = config.height  # the vertical half-size: the start height's range
     draws = []
     for key, radii, label in zip(keys, radii_lists, labels):
         # Steps 1-2 of sample_initial_state, with the same key split and dtypes.

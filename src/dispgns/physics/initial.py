@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -11,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from dispgns.capacity import Attempt, coarse_ladder, drive, ladder
 from dispgns.physics.config import PhysicsConfig
 
 __all__ = [
@@ -47,12 +49,13 @@ def particle_count_range(
 ) -> tuple[int, int]:
     """Inclusive range of particle counts the protocol draws from.
 
-    ``N_max = (2L)^(D-1) (L - y0) / (2 a_max)^D`` squares of side ``2 a_max``
-    fit the placement region; the protocol draws ``N`` uniformly from
+    ``N_max = prod_{d < D-1} (2 h_d) * (h_{D-1} - y0) / (2 a_max)^D`` cubes of
+    side ``2 a_max`` fit the placement region (the box above ``y0``, with the
+    half-sizes ``h_d`` of ``config``; ``(2L)^(D-1) (L - y0) / (2 a_max)^D`` in
+    the paper's square box); the protocol draws ``N`` uniformly from
     ``floor(0.7 N_max) ... floor(0.7 N_max) + 3``.
     """
-    half = config.box_half_size
-    region = (2.0 * half) ** (dim - 1) * (half - start_height)
+    region = _region_volume(config.half_sizes(dim), start_height)
     n_scale = int(0.7 * region / (2.0 * max_radius) ** dim)
     if n_scale + 3 > _MAX_PARTICLES:
         raise ValueError(
@@ -62,63 +65,202 @@ def particle_count_range(
     return n_scale, n_scale + 3
 
 
+def _region_volume(half_sizes: Sequence[float], start_height: float) -> float:
+    """Volume (area in 2-D) in m^D of the box above ``start_height``."""
+    horizontal = 1.0
+    for half in half_sizes[:-1]:
+        horizontal *= 2.0 * half
+    return horizontal * (half_sizes[-1] - start_height)
+
+
+def _ball_volume(radius, dim: int):
+    """Volume of a ``dim``-ball (area of a disk in 2-D)."""
+    return math.pi ** (dim / 2) / math.gamma(dim / 2 + 1) * radius**dim
+
+
 # Particle indices (neighbour lists, graphs) are int32.
 _MAX_PARTICLES = 2**31 - 1
+
+
+class _Grid(NamedTuple):
+    """Static cell grid over the whole box for the overlap test (hashable: a jit cache key).
+
+    ``per_side[d]`` cells of side ``size[d]`` m along axis ``d``; every side is
+    at least ``2 a_max``, so two particles that overlap lie in the same or
+    adjacent cells.
+    """
+
+    per_side: tuple[int, ...]
+    size: tuple[float, ...]
+
+
+def _grid_for(half_sizes: Sequence[float], max_radius: float, n: int) -> _Grid:
+    dim = len(half_sizes)
+    volume = math.prod(2.0 * h for h in half_sizes)
+    # Cells at least 2 a_max wide; and not many more cells than particles
+    # (tiny radii in a large box), which would only cost memory.
+    side = max(2.0 * max_radius, (volume / (4.0 * n + 16.0)) ** (1.0 / dim))
+    per_side = tuple(max(1, int(2.0 * h // side)) for h in half_sizes)
+    return _Grid(per_side, tuple(2.0 * h / c for h, c in zip(half_sizes, per_side)))
+
+
+def _cell_capacity_bound(grid: _Grid, min_radius: float, n: int) -> int:
+    """Most non-overlapping particles of radius >= ``min_radius`` whose centres fit in one cell.
+
+    Their balls lie inside the cell grown by ``min_radius`` on every side and
+    do not overlap, so their count is at most that volume over one ball's.
+    """
+    grown = math.prod(s + 2.0 * min_radius for s in grid.size)
+    return max(1, min(n, int(grown / _ball_volume(min_radius, len(grid.size)))))
 
 
 def place_particles(
     key, radius, start_height, config: PhysicsConfig, *, dim: int = 2, candidates: int = 64, max_rounds: int = 64
 ):
-    """Place particles one at a time, in index order, without overlap (jit-compiled).
+    """Place particles one at a time, in index order, without overlap (jit-compiled, cost linear in N).
 
-    Particle ``i`` is drawn uniformly in ``[-L + a_i, L - a_i]^(D-1) x
-    [y0 + a_i, L - a_i]`` and rejected if it is closer than ``a_i + a_j`` to a
-    particle already placed. ``candidates`` draws are tested at once per
-    round, up to ``max_rounds`` rounds per particle.
+    Particle ``i`` is drawn uniformly in ``[-h_d + a_i, h_d - a_i]`` on every
+    horizontal axis ``d`` and in ``[y0 + a_i, h_{D-1} - a_i]`` on the last
+    (vertical) one, with the half-sizes ``h_d`` of ``config.box_half_size``,
+    and rejected if it is closer than ``a_i + a_j`` to a particle already
+    placed. ``candidates`` draws are tested at once per round, up to
+    ``max_rounds`` rounds per particle; the first draw that fits is kept.
+
+    The overlap test looks only at the particles in the ``3^D`` cells around
+    a draw (cells at least ``2 max(radius)`` wide), so it finds exactly the
+    overlaps an all-pairs test finds and placing ``N`` particles costs
+    ``O(N)``: about a second for 10^5 disks. The cells hold a static number
+    of particles each; when a cell fills up, the placement stops there, the
+    capacity grows outside ``jit`` and the placement goes on
+    (:func:`dispgns.capacity.drive`), so the result never depends on it.
 
     Args:
-      key: PRNG key. radius: ``(N,)`` in m. start_height: ``y0`` in m.
+      key: PRNG key. radius: ``(N,)`` in m (concrete: the grid is sized from
+        it). start_height: ``y0`` in m.
       config, dim, candidates, max_rounds: static.
 
     Returns:
       ``(position (N, D), placed (N,) bool)``; ``placed[i]`` is ``False`` when
       no valid spot was found for particle ``i`` (its row is then invalid).
     """
+    if isinstance(radius, jax.core.Tracer) or isinstance(start_height, jax.core.Tracer):
+        raise TypeError("place_particles sizes its cell grid from concrete radii: call it outside jit")
     radius = jnp.asarray(radius)
+    n_real = radius.shape[0]
+    half_sizes = config.half_sizes(dim)
+    if n_real == 0:
+        return jnp.zeros((0, dim), radius.dtype), jnp.zeros((0,), bool)
+    host_radius = np.asarray(radius, np.float64)
+    # Compiled for particle counts on the capacity ladder, not for every count:
+    # the rows past n_real are never placed (placement stops at n_real).
+    n = ladder(n_real, quantum=16)
+    radius = jnp.concatenate([radius, jnp.full((n - n_real,), host_radius.min(), radius.dtype)])
+    grid = _grid_for(half_sizes, float(host_radius.max()), n)
+    n_cells = math.prod(grid.per_side)
+    bound = _cell_capacity_bound(grid, float(host_radius.min()), n)
+    # A first guess from the mean occupancy (a few times it); the bound is exact but
+    # can be huge for tiny radii (sample_initial_states pads with them).
+    guess = coarse_ladder(max(4, math.ceil(3.0 * n / n_cells) + 2))
+    capacity = min(bound, guess)
     start_height = jnp.asarray(start_height, radius.dtype)
-    return _place_jit(key, radius, start_height, config, candidates, max_rounds, radius.shape[0], dim)
+    state = (
+        jnp.zeros((n, dim), radius.dtype),
+        jnp.zeros((n,), bool),
+        jnp.full((n_cells + 1, capacity), n, jnp.int32),
+        jnp.zeros((n_cells + 1,), jnp.int32),
+        jnp.zeros((), jnp.int32),
+    )
+
+    def run(state, capacity, remaining):
+        new_state, overflow = _place_jit(
+            key, radius, start_height, n_real, state, half_sizes, grid, capacity, candidates, max_rounds
+        )
+        done = int(new_state[4]) - int(state[4])
+        return Attempt(new_state, None, done, bool(overflow))
+
+    def grow(capacity, state):
+        return min(n, coarse_ladder(capacity + 1))
+
+    def run_padded(state, capacity, remaining):
+        # The cell table of a grown capacity: the old one with empty slots appended.
+        table = state[2]
+        if table.shape[1] < capacity:
+            table = jnp.pad(table, ((0, 0), (0, capacity - table.shape[1])), constant_values=n)
+            state = state[:2] + (table,) + state[3:]
+        return run(state, capacity, remaining)
+
+    state, _, _ = drive(run_padded, state, capacity, grow, total=n_real)
+    return state[0][:n_real], state[1][:n_real]
 
 
-def _place(key, radius, start_height, config, candidates, max_rounds, n, dim):
-    half = config.box_half_size
+def _place(key, radius, start_height, n_real, state, half_sizes, grid: _Grid, capacity, candidates, max_rounds):
+    """Place particles ``state.next ... n_real - 1``; stop before a particle whose cell is full.
+
+    ``state`` = ``(position (N, D), placed (N,), table (cells + 1, C), count
+    (cells + 1,), next)``; the table lists the placed particles of each cell
+    (``N`` = empty slot; the extra last row stays empty).
+    """
+    n, dim = radius.shape[0], len(half_sizes)
     dtype = radius.dtype
+    half = jnp.asarray(half_sizes, dtype)
+    cell_size = np.asarray(grid.size)
+    per_side = np.asarray(grid.per_side, np.int32)
+    n_cells = math.prod(grid.per_side)
+    steps = [(0,) if count == 1 else (-1, 0, 1) for count in grid.per_side]
+    offsets = np.array(list(itertools.product(*steps)), np.int32)
+    strides = np.cumprod((1,) + grid.per_side[:0:-1])[::-1].astype(np.int32)
 
-    def place_one(i, carry):
-        position, placed = carry
+    def cell_of(point):
+        coordinate = jnp.floor((point + half) / cell_size.astype(dtype)).astype(jnp.int32)
+        return jnp.clip(coordinate, 0, per_side - 1)
+
+    def find_spot(i, position, table):
         a_i = radius[i]
-        low = jnp.full((dim,), -half, dtype).at[-1].set(start_height) + a_i
-        high = jnp.full((dim,), half, dtype) - a_i
+        low = (-half).at[-1].set(start_height) + a_i
+        high = half - a_i
 
-        def attempt(state):
-            round_index, _, _ = state
+        def attempt(search):
+            round_index, _, _ = search
             round_key = jax.random.fold_in(jax.random.fold_in(key, i), round_index)
             trial = jax.random.uniform(round_key, (candidates, dim), dtype, low, high)
-            gap = jnp.linalg.norm(trial[:, None, :] - position[None, :, :], axis=-1)
-            clear = (gap >= a_i + radius[None, :]) | ~placed[None, :]
+            around = cell_of(trial)[:, None, :] + offsets[None]
+            inside = jnp.all((around >= 0) & (around < per_side), axis=-1)
+            cells = jnp.where(inside, around @ strides, n_cells)
+            others = table[cells].reshape(candidates, -1)
+            other_position = position[jnp.minimum(others, n - 1)]
+            gap = jnp.linalg.norm(trial[:, None, :] - other_position, axis=-1)
+            clear = (gap >= a_i + radius[jnp.minimum(others, n - 1)]) | (others == n)
             ok = jnp.all(clear, axis=1)
             first = jnp.argmax(ok)
             return round_index + 1, jnp.any(ok), trial[first]
 
-        def keep_trying(state):
-            round_index, found, _ = state
+        def keep_trying(search):
+            round_index, found, _ = search
             return (~found) & (round_index < max_rounds)
 
         _, found, spot = lax.while_loop(keep_trying, attempt, (jnp.zeros((), jnp.int32), jnp.zeros((), bool), low))
-        return position.at[i].set(spot), placed.at[i].set(found)
+        return found, spot
 
-    position = jnp.zeros((n, dim), dtype)
-    placed = jnp.zeros((n,), bool)
-    return lax.fori_loop(0, n, place_one, (position, placed))
+    def place_one(carry):
+        (position, placed, table, count, i), _ = carry
+        found, spot = find_spot(i, position, table)
+        cell = cell_of(spot) @ strides
+        full = found & (count[cell] >= capacity)
+        record = found & ~full
+        slot = jnp.where(record, cell, n_cells)
+        table = table.at[slot, jnp.minimum(count[slot], capacity - 1)].set(jnp.where(record, i, n))
+        count = count.at[slot].add(record.astype(jnp.int32))
+        # Scatters, not selects over whole arrays: one placement costs O(1), not O(N).
+        row = jnp.where(full, n, i)
+        position = position.at[row].set(spot, mode="drop")
+        placed = placed.at[row].set(found, mode="drop")
+        return (position, placed, table, count, jnp.where(full, i, i + 1)), full
+
+    def more(carry):
+        (_, _, _, _, i), full = carry
+        return (i < n_real) & ~full
+
+    return lax.while_loop(more, place_one, (state, jnp.zeros((), bool)))
 
 
 def sample_initial_state(
@@ -135,10 +277,12 @@ def sample_initial_state(
 ) -> InitialState:
     """Draw one initial state with the authors' protocol.
 
-    1. ``y0 ~ U(-L/4, 0)`` (unless ``start_height`` is given);
+    1. ``y0 ~ U(-H/4, 0)`` with ``H`` the vertical (last) half-size of the
+       box (``L`` in the paper's square box), unless ``start_height`` is given;
     2. ``N`` from :func:`particle_count_range` (unless ``n_particles`` is given);
     3. radii uniformly from ``radii_choices`` (m);
-    4. non-overlapping placement in index order (:func:`place_particles`);
+    4. non-overlapping placement in index order (:func:`place_particles`),
+       anywhere in the box above ``y0`` (any rectangular box, any D);
     5. one common velocity ``(U(-vs, vs), ..., U(-vs, vs) / 4)`` with the
        isolated settling speed ``vs`` of the smallest radius in the list.
 
@@ -153,9 +297,12 @@ def sample_initial_state(
     radii_choices = np.asarray(radii_choices, dtype=float)
     if radii_choices.ndim != 1 or radii_choices.size == 0 or np.any(radii_choices <= 0):
         raise ValueError(f"radii_choices must be a non-empty list of radii > 0 m, got {radii_choices.tolist()}")
-    half = config.box_half_size
-    if np.any(radii_choices >= half):
-        raise ValueError(f"every radius must be below the box half-size L = {half} m, got {radii_choices.tolist()}")
+    half_sizes = config.half_sizes(dim)
+    half = half_sizes[-1]
+    if np.any(radii_choices >= min(half_sizes)):
+        raise ValueError(
+            f"every radius must be below the smallest box half-size {min(half_sizes)} m, got {radii_choices.tolist()}"
+        )
     if dtype is None:
         dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     key_height, key_count, key_radii, key_place, key_velocity = jax.random.split(key, 5)
@@ -179,12 +326,13 @@ def sample_initial_state(
     placed = np.asarray(placed)
     if not placed.all():
         first = int(np.argmin(placed))
-        region = (2 * half) ** (dim - 1) * (half - start_height)
-        filled = float(np.sum(math.pi * np.asarray(radius) ** 2)) / region if dim == 2 else float("nan")
+        region = _region_volume(half_sizes, start_height)
+        filled = float(np.sum(_ball_volume(np.asarray(radius, np.float64), dim))) / region
+        fraction = "area" if dim == 2 else "volume"
         raise PlacementError(
             f"could not place particle {first} of {n_particles} (radius {float(radius[first]):.4g} m) without "
             f"overlap after {candidates * max_rounds} random draws; the requested packing is too dense "
-            f"(area fraction {filled:.2f} above y0 = {start_height:.4g} m). Use fewer particles, smaller "
+            f"({fraction} fraction {filled:.2f} above y0 = {start_height:.4g} m). Use fewer particles, smaller "
             f"radii or a lower start height."
         )
 
@@ -195,4 +343,4 @@ def sample_initial_state(
     return InitialState(position, velocity, radius, float(start_height))
 
 
-_place_jit = jax.jit(_place, static_argnums=(3, 4, 5, 6, 7))
+_place_jit = jax.jit(_place, static_argnums=(5, 6, 7, 8, 9))

@@ -85,6 +85,7 @@ class SimState:
 
 
 def _far_away_positions(count: int, dim: int, spacing: float, box_half_size: float, dtype) -> jnp.ndarray:
+    # box_half_size: the largest half-size over the axes (m).
     """Positions for padding particles: outside the box, farther than ``spacing`` apart."""
     offsets = (3.0 * box_half_size + spacing * jnp.arange(1, count + 1, dtype=dtype))[:, None]
     return jnp.broadcast_to(offsets, (count, dim)).astype(dtype)
@@ -98,9 +99,10 @@ def _park_padding(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfi
     contributes ``0 * displacement``, which is 0 only for finite values.
     """
     n, dim = position.shape
-    reach = 2.0 * config.box_half_size if config.cutoff is None else config.cutoff + config.neighbor_skin
+    largest = config.largest_half_size
+    reach = 2.0 * largest if config.cutoff is None else config.cutoff + config.neighbor_skin
     spacing = 1.01 * reach
-    parked = _far_away_positions(n, dim, spacing, config.box_half_size, position.dtype)
+    parked = _far_away_positions(n, dim, spacing, largest, position.dtype)
     return jnp.where(mask[:, None], position, parked)
 
 
@@ -109,25 +111,36 @@ def _park_padding(position: jnp.ndarray, mask: jnp.ndarray, config: PhysicsConfi
 _CAPACITY_MULTIPLIER = 1.25
 
 
-def _cell_grid(config: PhysicsConfig) -> tuple[int, float]:
-    """Cells per side and cell side in m of the grid over ``[0, 2L]^D``.
+def _half_sizes(config: PhysicsConfig, dim: int, dtype):
+    """The box half-sizes ``(D,)`` in m: the shift from the box frame into the cell-list frame."""
+    if not isinstance(config.box_half_size, tuple):
+        return config.box_half_size  # a Python float, as before: the square box's arithmetic is unchanged
+    return np.asarray(config.half_sizes(dim), dtype)
+
+
+def _cell_grid(config: PhysicsConfig, dim: int) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """Cells per axis and cell side per axis in m of the grid over ``[0, 2 h_0] x ... x [0, 2 h_{D-1}]``.
 
     Cells are at least the list radius ``cutoff + neighbor_skin`` wide, so
     every pair within it lies in the same or adjacent cells.
     """
-    box = 2.0 * config.box_half_size
     reach = config.cutoff + config.neighbor_skin
-    per_side = max(1, int(box // reach))
-    while per_side > 1 and box / per_side < reach:
-        per_side -= 1
-    return per_side, box / per_side
+    per_side, sizes = [], []
+    for half in config.half_sizes(dim):
+        box = 2.0 * half
+        count = max(1, int(box // reach))
+        while count > 1 and box / count < reach:
+            count -= 1
+        per_side.append(count)
+        sizes.append(box / count)
+    return tuple(per_side), tuple(sizes)
 
 
-def _flat_cell(coordinate: jnp.ndarray, per_side: int) -> jnp.ndarray:
+def _flat_cell(coordinate: jnp.ndarray, per_side: tuple[int, ...]) -> jnp.ndarray:
     """Row-major cell number of integer cell coordinates ``(..., D)``."""
     flat = coordinate[..., 0]
     for d in range(1, coordinate.shape[-1]):
-        flat = flat * per_side + coordinate[..., d]
+        flat = flat * per_side[d] + coordinate[..., d]
     return flat
 
 
@@ -137,10 +150,11 @@ def _cells(position: jnp.ndarray, config: PhysicsConfig):
     Parked particles (padding, placed far outside the box) lie more than a
     cell outside the grid: they get no cell and no neighbours.
     """
-    per_side, size = _cell_grid(config)
-    coordinate = jnp.floor(position / size).astype(jnp.int32)
-    parked = jnp.any((coordinate < -1) | (coordinate > per_side), axis=-1)
-    return jnp.clip(coordinate, 0, per_side - 1), parked
+    per_side, size = _cell_grid(config, position.shape[-1])
+    count = np.asarray(per_side, np.int32)
+    coordinate = jnp.floor(position / np.asarray(size, position.dtype)).astype(jnp.int32)
+    parked = jnp.any((coordinate < -1) | (coordinate > count), axis=-1)
+    return jnp.clip(coordinate, 0, count - 1), parked
 
 
 @functools.partial(jax.jit, static_argnames=("config", "cell_capacity", "max_neighbors"))
@@ -159,8 +173,8 @@ def _build_neighbors(position, error, config: PhysicsConfig, cell_capacity: int,
     then by particle index).
     """
     n, dim = position.shape
-    per_side, _ = _cell_grid(config)
-    n_cells = per_side**dim
+    per_side, _ = _cell_grid(config, dim)
+    n_cells = math.prod(per_side)
     coordinate, parked = _cells(position, config)
     cell = _flat_cell(coordinate, per_side)
 
@@ -180,10 +194,10 @@ def _build_neighbors(position, error, config: PhysicsConfig, cell_capacity: int,
 
     # Candidates: the particles of the 3^D cells around each particle's own
     # (one cell when the grid has a single cell per side).
-    steps = (0,) if per_side == 1 else (-1, 0, 1)
-    offsets = np.array(list(itertools.product(steps, repeat=dim)), np.int32)
+    steps = [(0,) if count == 1 else (-1, 0, 1) for count in per_side]
+    offsets = np.array(list(itertools.product(*steps)), np.int32)
     around = coordinate[:, None, :] + offsets[None]
-    inside = jnp.all((around >= 0) & (around < per_side), axis=-1) & ~parked[:, None]
+    inside = jnp.all((around >= 0) & (around < np.asarray(per_side, np.int32)), axis=-1) & ~parked[:, None]
     candidate = table[jnp.where(inside, _flat_cell(around, per_side), n_cells)].reshape(n, -1)
     padded = jnp.concatenate([position, jnp.zeros((1, dim), position.dtype)])
     other = padded[candidate]
@@ -231,7 +245,8 @@ def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFn
     """
     if config.cutoff is None:
         raise ValueError("neighbour lists need PhysicsConfig.cutoff to be set (got None = all pairs)")
-    per_side, cell_size = _cell_grid(config)
+    per_side, cell_size = _cell_grid(config, dim)
+    cell_size = cell_size[0] if len(set(cell_size)) == 1 else np.asarray(cell_size)
 
     def make(position, idx, error, cell_capacity, max_neighbors):
         return partition.NeighborList(
@@ -255,10 +270,11 @@ def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFn
         position = jnp.asarray(position)
         n = position.shape[0]
         coordinate, parked = (np.asarray(a) for a in _cells(position, config))
-        cells = coordinate[~parked] @ (per_side ** np.arange(dim - 1, -1, -1))
+        strides = np.cumprod((1,) + per_side[:0:-1])[::-1]
+        cells = coordinate[~parked] @ strides
         occupancy = int(np.bincount(cells).max(initial=0))
         cell_capacity = max(1, int(occupancy * _CAPACITY_MULTIPLIER)) + extra_capacity
-        candidates = (1 if per_side == 1 else 3**dim) * cell_capacity
+        candidates = math.prod(1 if count == 1 else 3 for count in per_side) * cell_capacity
         error = partition.PartitionError(jnp.zeros((), jnp.uint8))
         idx, most, error = _build_neighbors(position, error, config, cell_capacity, candidates)
         max_neighbors = int(int(most) * _CAPACITY_MULTIPLIER + extra_capacity)
@@ -288,7 +304,7 @@ def update_neighbors(
     Positions are in m, in the box frame (the shift into the cell-list frame
     happens here); ``velocity``, like ``position``, in m/s.
     """
-    shifted = position + config.box_half_size
+    shifted = position + _half_sizes(config, position.shape[-1], position.dtype)
     moved = jnp.sqrt(jnp.sum((shifted - neighbors.reference_position) ** 2, axis=-1))
     if velocity is None:
         due = jnp.max(moved) > 0.25 * config.neighbor_skin
@@ -712,7 +728,8 @@ def _neighbor_lists(position, mask, config: PhysicsConfig, capacity: PhysicsCapa
 
 def _shifted(position, mask, config: PhysicsConfig) -> list:
     """Each trajectory's positions in the cell-list frame ``[0, 2L]^D``, padding parked outside."""
-    return [_park_padding(position[b], mask[b], config) + config.box_half_size for b in range(position.shape[0])]
+    half = _half_sizes(config, position.shape[-1], position.dtype)
+    return [_park_padding(position[b], mask[b], config) + half for b in range(position.shape[0])]
 
 
 def _drive(x0, v0, radius, mask, config, settings, progress=None):

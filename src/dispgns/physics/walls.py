@@ -88,10 +88,12 @@ def resolve_walls(
         instead of ``N x N``). ``None``: all N, no overflow possible.
     """
     n, dim = position.shape
-    lower_all = -config.box_half_size + radius
-    upper_all = config.box_half_size - radius
-    above = (euler_position > upper_all[:, None]) & mask[:, None]
-    below = (euler_position < lower_all[:, None]) & mask[:, None]
+    # Admissible centre range per particle and axis, (N, D): one half-size per axis.
+    half = jnp.asarray(config.half_sizes(dim), position.dtype)
+    lower_all = -half + radius[:, None]
+    upper_all = half - radius[:, None]
+    above = (euler_position > upper_all) & mask[:, None]
+    below = (euler_position < lower_all) & mask[:, None]
     crossed_any = jnp.any(above | below, axis=-1)
     wall_hits = jnp.stack([jnp.sum(above, axis=0), jnp.sum(below, axis=0)], axis=-1).reshape(2 * dim)
     corner_events = jnp.sum(jnp.sum(above | below, axis=-1) >= 2)
@@ -141,8 +143,8 @@ def _collide(
 ):
     """End-of-step ``(position, velocity)``, ``(N, D)``, with every crossing particle's collision applied.
 
-    Arguments as in :func:`resolve_walls`; ``lower_all``/``upper_all`` ``(N,)``
-    are the admissible centre range in m, ``crossed_any`` ``(N,)`` flags the
+    Arguments as in :func:`resolve_walls`; ``lower_all``/``upper_all`` ``(N, D)``
+    are the admissible centre range in m per axis, ``crossed_any`` ``(N,)`` flags the
     crossing particles and ``capacity`` is ``None`` (all rows) or ``< N``.
     """
     n, dim = position.shape
@@ -161,17 +163,17 @@ def _collide(
     x, v = columns(gather(position)), columns(gather(velocity))
     result_x, result_v = columns(gather(euler_position)), columns(gather(euler_velocity))
     force_start, ext = columns(gather(start_force)), columns(gather(external))
-    lower, upper = gather(lower_all), gather(upper_all)
+    lower, upper = columns(gather(lower_all)), columns(gather(upper_all))
     drag = config.drag * gather(radius)
     inv_mass = 1.0 / gather(mass)
     sqrt_restitution = math.sqrt(config.restitution)
 
-    crossed = [(c > upper) | (c < lower) for c in result_x]
+    crossed = [(c > hi) | (c < lo) for c, lo, hi in zip(result_x, lower, upper)]
     n_crossed = sum(c.astype(jnp.int32) for c in crossed)
     contact_time = [
         jnp.where(
             crossed[d],
-            (jnp.where(result_x[d] > upper, upper, lower) - x[d]) / jnp.where(crossed[d], v[d], 1.0),
+            (jnp.where(result_x[d] > upper[d], upper[d], lower[d]) - x[d]) / jnp.where(crossed[d], v[d], 1.0),
             jnp.inf,
         )
         for d in range(dim)
@@ -187,14 +189,17 @@ def _collide(
     ]
 
     start, start_velocity, force_at_start = x, v, force_start
-    remaining = jnp.full(lower.shape, config.dt, dtype)
+    remaining = jnp.full(lower[0].shape, config.dt, dtype)
     for event in range(dim):
         on_axis = [r == event for r in rank]
         result_d = _select_axis(on_axis, result_x)
+        # The walls of the axis met at this event (exactly the square box's
+        # values when every half-size is equal: a select, no arithmetic).
+        upper_d, lower_d = _select_axis(on_axis, upper), _select_axis(on_axis, lower)
         if event > 0:
-            still_crossing = (result_d > upper) | (result_d < lower)
+            still_crossing = (result_d > upper_d) | (result_d < lower_d)
             active = active & (event < n_crossed) & still_crossing
-        wall = jnp.where(result_d > upper, upper, lower)
+        wall = jnp.where(result_d > upper_d, upper_d, lower_d)
         start_d = _select_axis(on_axis, start)
         velocity_d = jnp.where(active, _select_axis(on_axis, start_velocity), 1.0)
         t_contact = jnp.clip((wall - start_d) / velocity_d, 0.0, remaining)
@@ -226,7 +231,7 @@ def _collide(
 
     # In exact arithmetic every particle ends inside; the clip only removes
     # rounding of a contact point that lands an ulp beyond its wall.
-    result_x = [jnp.clip(c, lower, upper) for c in result_x]
+    result_x = [jnp.clip(c, lo, hi) for c, lo, hi in zip(result_x, lower, upper)]
     new_x, new_v = jnp.stack(result_x, axis=-1), jnp.stack(result_v, axis=-1)
     collided = gather(crossed_any) & (index < n)
     if capacity is None:
