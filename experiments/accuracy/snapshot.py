@@ -43,9 +43,7 @@ def main(argv=None) -> int:
     export_model(args.out, params, model_config, record)
     validation = record.get("validation", {})
     print(
-        json.dumps(
-            {"out": args.out, "step": record["steps"], "valid_rollout_mse": validation.get("valid_rollout_mse")}
-        )
+        json.dumps({"out": args.out, "step": record["steps"], "valid_rollout_mse": validation.get("valid_rollout_mse")})
     )
     return 0
 
