@@ -58,6 +58,8 @@ _EXPORTS = {
     "create_train_state": "dispgns.training",
     "make_optimizer": "dispgns.training",
     "train_step": "dispgns.training",
+    "train": "dispgns.training",
+    "NonFiniteLossError": "dispgns.training",
     "export_model": "dispgns.training.checkpoint",
     "load_model": "dispgns.training.checkpoint",
     "load_params": "dispgns.training.checkpoint",
@@ -84,6 +86,7 @@ __all__ = [
     "TrainConfig",
     "TrainState",
     "Trajectory",
+    "NonFiniteLossError",
     "__version__",
     "chaos_floor_rollout",
     "compute_normalization",
@@ -112,6 +115,7 @@ __all__ = [
     "simulate_batch",
     "simulate_scan",
     "summarize",
+    "train",
     "train_step",
     "tuning",
 ]
@@ -160,11 +164,13 @@ if TYPE_CHECKING:  # what static tools and IDEs see
     from dispgns.training import (
         Batch,
         BatchStream,
+        NonFiniteLossError,
         TrainConfig,
         TrainState,
         compute_normalization,
         create_train_state,
         make_optimizer,
+        train,
         train_step,
     )
     from dispgns.training.checkpoint import export_model, load_model, load_params

@@ -62,6 +62,19 @@ def register(subparsers) -> None:
     parser.add_argument("--resume", action="store_true", help="continue the run in RUN from its latest checkpoint")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing run in RUN")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--logger",
+        action="append",
+        choices=("jsonl", "tensorboard", "wandb"),
+        default=[],
+        help="also log to TensorBoard (RUN/tensorboard, needs tensorboardX) or Weights & Biases (needs wandb; "
+        "offline unless --wandb-mode online or WANDB_MODE says otherwise); repeatable. RUN/log.jsonl is always "
+        "written",
+    )
+    parser.add_argument("--wandb-project", default="dispgns", metavar="NAME", help="W&B project (default dispgns)")
+    parser.add_argument(
+        "--wandb-mode", choices=("offline", "online", "disabled"), help="W&B mode (default: WANDB_MODE, else offline)"
+    )
     parallel = add_distributed_arguments(
         parser,
         "Every batch is split over all devices JAX sees (data parallelism; train.batch_size is the global batch, "
@@ -272,7 +285,8 @@ def run(args: argparse.Namespace) -> int:
         run_config,
         write_json,
     )
-    from dispgns.training.loop import Validator, train
+    from dispgns.training.loggers import LoggerGroup
+    from dispgns.training.loop import NonFiniteLossError, Validator, train
 
     run_dir = Path(args.out)
     try:
@@ -355,10 +369,13 @@ def run(args: argparse.Namespace) -> int:
     if first >= last:
         progress.write(f"run is already at step {first} >= {last}; nothing to train (raise --steps to continue)")
 
+    extra_loggers = _make_loggers(args, run_dir, config) if primary else LoggerGroup([])
+
     def on_log(record):
         if not primary:
             return
         log.write(record)
+        extra_loggers(record)
         if record["kind"] == "validation":
             shown = ", ".join(
                 f"{k} {v:.4g}" for k, v in record.items() if k.startswith("valid_") and isinstance(v, float)
@@ -379,9 +396,12 @@ def run(args: argparse.Namespace) -> int:
                 compiler_options=options,
                 parallel=parallel,
             )
+    except NonFiniteLossError as error:
+        raise CLIError(f"{error} (dispgns train --data {args.data} --out {args.out} --resume)") from None
     finally:
         progress.close()
         checkpointer.close()
+        extra_loggers.close()
     state = result.state
     if not primary:
         return 130 if result.interrupted else 0
@@ -404,6 +424,23 @@ def run(args: argparse.Namespace) -> int:
         return 130
     print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
     return 0
+
+
+def _make_loggers(args, run_dir: Path, config):
+    """The ``--logger`` choices beyond the JSONL log, as one ``on_log`` callable."""
+    from dispgns.training.loggers import LoggerGroup, make_logger
+
+    loggers = []
+    try:
+        for kind in dict.fromkeys(args.logger):  # in order, once each
+            if kind == "tensorboard":
+                loggers.append(make_logger(kind, run_dir, config))
+            elif kind == "wandb":
+                loggers.append(make_logger(kind, run_dir, config, project=args.wandb_project, mode=args.wandb_mode))
+    except ModuleNotFoundError as error:
+        LoggerGroup(loggers).close()
+        raise CLIError(str(error)) from None
+    return LoggerGroup(loggers)
 
 
 def _data_parallel(args, batch_size: int):

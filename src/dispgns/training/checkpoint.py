@@ -42,6 +42,7 @@ from flax import serialization
 
 from dispgns.files import staged_directory, write_atomic
 from dispgns.model import ModelConfig, init_params
+from dispgns.training.loggers import json_safe
 from dispgns.training.step import TrainConfig, TrainState, create_train_state
 
 __all__ = [
@@ -87,7 +88,7 @@ def write_json(path: str | os.PathLike, values: Mapping[str, Any]) -> Path:
     """``values`` as indented JSON at ``path``, atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, json.dumps(values, indent=2, default=_json_default) + "\n")
+    write_atomic(path, _dumps(values, indent=2) + "\n")
     return path
 
 
@@ -105,6 +106,11 @@ def read_json(path: str | os.PathLike, what: str) -> dict[str, Any]:
     return values
 
 
+def _dumps(value, **kwargs) -> str:
+    """JSON text without NaN or infinities (``null`` instead; ``json`` would write the non-standard ``NaN``)."""
+    return json.dumps(json_safe(value), allow_nan=False, default=_json_default, **kwargs)
+
+
 def _json_default(value):
     if isinstance(value, (np.generic, jnp.ndarray, np.ndarray)):
         return np.asarray(value).tolist()
@@ -120,7 +126,7 @@ class JsonlLog:
     def write(self, record: Mapping[str, Any]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.path.open("a") as file:
-            file.write(json.dumps(record, default=_json_default) + "\n")
+            file.write(_dumps(record) + "\n")
             file.flush()
 
     def read(self) -> list[dict[str, Any]]:
@@ -142,7 +148,7 @@ class JsonlLog:
     def truncate_after(self, step: int) -> None:
         """Drop records past ``step`` (a resumed run rewrites them), atomically."""
         kept = [r for r in self.read() if int(r.get("step", 0)) <= step]
-        text = "".join(json.dumps(r, default=_json_default) + "\n" for r in kept)
+        text = "".join(_dumps(r) + "\n" for r in kept)
         write_atomic(self.path, text)
 
 
@@ -271,13 +277,15 @@ class Checkpointer:
           validation_value: the number "best" is judged by (lower is better).
         """
         step = int(state.step)
-        extra = {
-            "config": self.config,
-            "step": step,
-            "data_position": int(data_position),
-            "validation": dict(validation or {}),
-            "validation_value": validation_value,
-        }
+        extra = json_safe(
+            {
+                "config": self.config,
+                "step": step,
+                "data_position": int(data_position),
+                "validation": dict(validation or {}),
+                "validation_value": validation_value,
+            }
+        )
         tree = _state_tree(state, key, data_position)
         args = ocp.args.Composite(state=ocp.args.StandardSave(tree), extra=ocp.args.JsonSave(extra))
         with _interrupts_held():
@@ -352,7 +360,7 @@ def export_model(
     }
     with staged_directory(directory, overwrite=True, marker=MODEL_FILE, kind="model") as staging:
         (staging / PARAMS_FILE).write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(host)))
-        (staging / MODEL_FILE).write_text(json.dumps(info, indent=2, default=_json_default) + "\n")
+        (staging / MODEL_FILE).write_text(_dumps(info, indent=2) + "\n")
     return directory
 
 

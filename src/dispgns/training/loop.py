@@ -14,6 +14,7 @@ for progress bars, ``on_log`` for log records) and saves through a
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -31,7 +32,22 @@ from dispgns.training.batches import BatchStream
 from dispgns.training.step import TrainConfig, TrainState, loss_fn, train_step_checked
 from dispgns.tuning import jitted
 
-__all__ = ["LoopResult", "Validator", "train"]
+__all__ = ["LoopResult", "NonFiniteLossError", "Validator", "train"]
+
+
+class NonFiniteLossError(FloatingPointError):
+    """Training stopped: a step's loss (or gradient norm) was NaN or infinite.
+
+    Attributes:
+      step: the step whose loss was not finite (counting from 1, as the log does).
+      value: that loss.
+      state: the last finite state (before that step), already checkpointed when the loop had a
+        checkpointer.
+    """
+
+    def __init__(self, message: str, *, step: int, value: float, state):
+        super().__init__(message)
+        self.step, self.value, self.state = step, value, state
 
 
 class Validator:
@@ -173,6 +189,13 @@ def train(
     "validation", "step", ...metrics}``; every ``checkpoint_every`` steps, at
     the end and on ``KeyboardInterrupt`` the checkpointer saves (the best
     checkpoint is judged by ``valid_rollout_mse``, else the one-step loss).
+    A step whose loss or gradient norm is not finite stops training: the
+    state before it (the last finite one) is checkpointed and
+    :class:`NonFiniteLossError` is raised, naming the step.
+
+    ``on_log`` is the hook for your own logging (any callable); the command
+    line passes the JSONL log and, with ``--logger``, the loggers of
+    :mod:`dispgns.training.loggers` (TensorBoard, W&B) through it.
 
     Args:
       state: where to start (fresh or restored).
@@ -239,12 +262,26 @@ def train(
                 batch = stream.batch(step)
             else:
                 batch = parallel.global_batch(stream.batch(step, parallel.local_examples(stream.batch_size)))
+            previous = state
             state, metrics, _ = train_step_checked(
                 state, batch, jax.random.fold_in(key, step), compiler_options=compiler_options, parallel=parallel
             )
+            loss = float(metrics["loss"])
+            if not (math.isfinite(loss) and math.isfinite(float(metrics["grad_norm"]))):
+                # Keep the last finite state: checkpoint it, then stop with the step named.
+                state = previous
+                checkpoint()
+                saved = f"a checkpoint of step {step} (the last finite state) is saved" if checkpointer else ""
+                raise NonFiniteLossError(
+                    f"training stopped: the loss is {loss} (gradient norm {float(metrics['grad_norm'])}) at step "
+                    f"{step + 1}; {saved or 'nothing was saved (no checkpointer)'}. Lower the learning rate or "
+                    f"check the data, then resume.",
+                    step=step + 1,
+                    value=loss,
+                    state=state,
+                )
             step += 1
             stream.position = step
-            loss = float(metrics["loss"])
             losses.append(loss)
             norms.append(float(metrics["grad_norm"]))
             if on_step is not None:
