@@ -16,8 +16,30 @@ from typing import Any
 
 import jax
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
 
-__all__ = ["host_array", "node_budget", "pad_particles", "stack_padded"]
+__all__ = [
+    "Flag",
+    "Frame",
+    "ParticleMask",
+    "PositionWindow",
+    "Positions",
+    "Radii",
+    "host_array",
+    "node_budget",
+    "pad_particles",
+    "stack_padded",
+]
+
+# Array shapes of the public API (jaxtyping annotations: documentation for readers, IDEs and type checkers;
+# no runtime check). T frames, C input frames, N particles, D = 2 or 3 axes; normalised units unless a
+# docstring says SI.
+Positions = Float[ArrayLike, "T N D"]
+PositionWindow = Float[ArrayLike, "C N D"]
+Frame = Float[ArrayLike, "N D"]
+Radii = Float[ArrayLike, "N"]
+ParticleMask = Bool[ArrayLike, "N"]
+Flag = Bool[ArrayLike, ""]
 
 
 def host_array(x, name: str, *, pure: str | None = None) -> np.ndarray:

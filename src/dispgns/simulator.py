@@ -45,7 +45,7 @@ from jax import lax
 
 from dispgns import features as features_lib
 from dispgns import graph as graph_lib
-from dispgns.arrays import host_array
+from dispgns.arrays import Flag, Frame, ParticleMask, Positions, PositionWindow, Radii, host_array
 from dispgns.capacity import Attempt, drive
 from dispgns.graph import Graph, GraphCapacity
 from dispgns.model import ModelConfig, apply_network
@@ -216,7 +216,15 @@ def _inputs(position_seq, radius, mask):
 # ----------------------------------------------------------------------------- pure cores
 
 
-def predict_step(params, position_seq, radius, *, model_config: ModelConfig, capacity, mask=None) -> PredictedStep:
+def predict_step(
+    params,
+    position_seq: PositionWindow,
+    radius: Radii,
+    *,
+    model_config: ModelConfig,
+    capacity,
+    mask: ParticleMask | None = None,
+) -> PredictedStep:
     """One learned step with a fixed graph capacity (pure: ``jit``, ``vmap``, ``grad``, ``lax.scan``).
 
     Args:
@@ -281,8 +289,15 @@ def predict_step_batch(
 
 
 def rollout_scan(
-    params, initial_positions, radius, n_steps: int, *, model_config: ModelConfig, capacity, mask=None
-) -> tuple[jnp.ndarray, jnp.ndarray]:
+    params,
+    initial_positions: PositionWindow,
+    radius: Radii,
+    n_steps: int,
+    *,
+    model_config: ModelConfig,
+    capacity,
+    mask: ParticleMask | None = None,
+) -> tuple[Positions, Flag]:
     """Autoregressive rollout as one ``lax.scan`` with a fixed graph capacity (pure).
 
     Works under ``jit``, ``vmap`` (over trajectories of equal padded size) and
@@ -404,8 +419,15 @@ def _predict_once(params, position_seq, radius, mask, capacity, model_config, co
 
 
 def predict_acceleration(
-    params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None, compiler_options=None
-):
+    params,
+    position_seq: PositionWindow,
+    radius: Radii,
+    *,
+    model_config: ModelConfig,
+    mask: ParticleMask | None = None,
+    capacity=None,
+    compiler_options=None,
+) -> Frame:
     """Predicted acceleration of every particle for one step (host; see :func:`predict_step` for the pure core).
 
     Args:
@@ -426,8 +448,15 @@ def predict_acceleration(
 
 
 def predict_position(
-    params, position_seq, radius, *, model_config: ModelConfig, mask=None, capacity=None, compiler_options=None
-):
+    params,
+    position_seq: PositionWindow,
+    radius: Radii,
+    *,
+    model_config: ModelConfig,
+    mask: ParticleMask | None = None,
+    capacity=None,
+    compiler_options=None,
+) -> Frame:
     """Predicted next position ``x_t + (x_t - x_{t-1}) + acc``, ``(N, D)`` (host).
 
     Arguments as :func:`predict_acceleration`; padding particles keep their last position.
@@ -560,17 +589,17 @@ def _host_rollout(params, initial_positions, radius, n_steps, model_config: Mode
 
 def rollout(
     params,
-    initial_positions,
-    radius,
+    initial_positions: PositionWindow,
+    radius: Radii,
     n_steps: int,
     *,
     model_config: ModelConfig,
-    mask=None,
+    mask: ParticleMask | None = None,
     capacity=None,
     chunk_size: int = 50,
     compiler_options: Mapping[str, Any] | None = None,
     progress: Callable[[int], None] | None = None,
-):
+) -> Positions:
     """Autoregressive rollout of ``n_steps`` frames (host; :func:`rollout_scan` is the pure core).
 
     The steps run in compiled chunks of about ``chunk_size``; a chunk stops at
