@@ -149,10 +149,10 @@ def test_render_from_predictions_and_from_model(tiny_dataset, trained, tmp_path,
         )
         == 0
     )
-    gif = Image.open(f"{prefix}.gif")
+    gif = Image.open(prefix / "rollout.gif")
     assert gif.n_frames == 20  # 60 frames, every 3rd
-    assert (tmp_path / "pictures" / "test0.mp4").stat().st_size > 1000
-    assert Image.open(f"{prefix}_grid.png").size[0] > 500
+    assert (prefix / "rollout.mp4").stat().st_size > 1000
+    assert Image.open(prefix / "rollout_grid.png").size[0] > 500
     model_prefix = tmp_path / "pictures" / "model"
     assert (
         main(
@@ -175,10 +175,10 @@ def test_render_from_predictions_and_from_model(tiny_dataset, trained, tmp_path,
         )
         == 0
     )
-    assert Image.open(f"{model_prefix}.gif").n_frames == 10
-    assert not (tmp_path / "pictures" / "model.mp4").exists()
+    assert Image.open(model_prefix / "rollout.gif").n_frames == 10
+    assert not (model_prefix / "rollout.mp4").exists()
     # The same rollout, whether rendered from the file or from the model.
-    a, b = Image.open(f"{prefix}_grid.png"), Image.open(f"{model_prefix}_grid.png")
+    a, b = Image.open(prefix / "rollout_grid.png"), Image.open(model_prefix / "rollout_grid.png")
     assert np.array_equal(np.asarray(a), np.asarray(b))
     capsys.readouterr()
     assert (
@@ -278,7 +278,7 @@ def test_evaluate_is_atomic_and_render_checks_what_it_is_given(tiny_dataset, tra
     predictions = str(out / "predictions" / "test.h5")
     render = ["render", "--data", str(tiny_dataset), "--no-mp4", "--predictions", predictions]
     assert main(render + ["--split", "test", "--stride", "1", "--out", str(tmp_path / "short")]) == 0
-    assert Image.open(tmp_path / "short.gif").n_frames == 20
+    assert Image.open(tmp_path / "short" / "rollout.gif").n_frames == 20
     cases = [
         (["--split", "train"], "is not a prediction of train trajectory 0"),
         (["--split", "test", "--fps", "nan"], "--fps a finite number > 0"),

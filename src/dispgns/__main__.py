@@ -1,5 +1,3 @@
-import sys
+from dispgns.cli import entry
 
-from dispgns.cli import main
-
-sys.exit(main())
+entry()

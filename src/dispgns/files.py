@@ -4,20 +4,24 @@ Everything dispgns writes (datasets, checkpoints' small files, exported
 models, pictures) is first written under a temporary name beside its target
 (same directory, same file system) and renamed into place only when complete:
 an interruption leaves the old file or nothing, never half a file. Temporary
-names start with ``.<target name>.`` and contain ``.tmp``.
+names start with ``.<target name>.``, contain ``.tmp`` and the writing
+process's id; a process killed outright (SIGKILL, power loss) cannot remove
+its own, and :func:`remove_leftovers` removes them on the next run once that
+process is gone.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "staged_directory", "write_atomic"]
+__all__ = ["atomic_path", "check_output_directory", "leftovers", "remove_leftovers", "staged_directory", "write_atomic"]
 
 
 def _umask() -> int:
@@ -37,7 +41,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     path = Path(path).absolute()
     suffix = path.suffix
-    temporary = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp{suffix}"
+    temporary = path.parent / f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:12]}.tmp{suffix}"
     try:
         yield temporary
         if temporary.exists():
@@ -61,7 +65,75 @@ def write_atomic(path: str | os.PathLike, data: bytes | str | Callable[[Path], N
     return path
 
 
-def _check_target(out_dir: Path, overwrite: bool, marker: str, kind: str) -> None:
+_PID = re.compile(r"(?:^|[.-])(\d+)-[0-9a-z_]+(?:\.tmp|$)")
+
+
+def _writer_alive(name: str) -> bool:
+    """Whether the process that made the temporary ``name`` still runs (names without a pid: no)."""
+    match = _PID.search(name)
+    if match is None:
+        return False
+    pid = int(match.group(1))
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def leftovers(target: str | os.PathLike) -> list[Path]:
+    """Temporary files and folders that writes of ``target`` left beside it and whose writer is gone."""
+    target = Path(target).absolute()
+    try:
+        entries = list(target.parent.iterdir())
+    except OSError:
+        return []
+    prefix = f".{target.name}."
+    return sorted(p for p in entries if _temporary_of(p.name, prefix) and not _writer_alive(p.name))
+
+
+def _temporary_of(name: str, prefix: str) -> bool:
+    """Whether ``name`` is one of this module's temporary names for the target that ``prefix`` starts."""
+    rest = name[len(prefix) :] if name.startswith(prefix) else ""
+    return rest.startswith("tmp-") or ".tmp" in rest
+
+
+def remove_leftovers(target: str | os.PathLike) -> list[tuple[Path, str]]:
+    """Remove what interrupted writes of ``target`` left beside it; returns ``[(path, what was done)]``.
+
+    A previous complete ``target`` set aside during a replacement (``.old-``)
+    is put back when ``target`` itself is missing (the kill came between the
+    two renames), and removed otherwise. Temporaries of a process that still
+    runs are left alone. Errors (a read-only folder) leave the entry in place.
+    """
+    target = Path(target).absolute()
+    done = []
+    for path in leftovers(target):
+        try:
+            if ".old-" in path.name and not target.exists():
+                os.replace(path, target)
+                done.append((path, f"restored as {target}"))
+            elif path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+                done.append((path, "removed"))
+            else:
+                path.unlink()
+                done.append((path, "removed"))
+        except OSError:
+            continue
+    return done
+
+
+def check_output_directory(out_dir: str | os.PathLike, overwrite: bool, marker: str, kind: str) -> None:
+    """Raise ``FileExistsError`` unless ``out_dir`` is missing, empty, or (``overwrite``) a ``kind`` with ``marker``.
+
+    :func:`staged_directory` checks this itself; call it first to refuse before a long computation.
+    """
+    out_dir = Path(out_dir)
     if out_dir.exists() or out_dir.is_symlink():
         if not out_dir.is_dir():
             raise FileExistsError(f"{out_dir} exists and is not a directory")
@@ -81,7 +153,7 @@ def _move_into_place(staging: Path, out_dir: Path) -> None:
     if not out_dir.exists():
         os.replace(staging, out_dir)
         return
-    old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}.tmp"
+    old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp"
     os.replace(out_dir, old)
     try:
         os.replace(staging, out_dir)
@@ -108,14 +180,14 @@ def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False, mar
       OSError: the parent directory cannot be written.
     """
     out_dir = Path(out_dir).absolute()
-    _check_target(out_dir, overwrite, marker, kind)
+    check_output_directory(out_dir, overwrite, marker, kind)
     created = []
     for parent in reversed(out_dir.parents):
         if not parent.exists():
             parent.mkdir()
             created.append(parent)
     try:
-        staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
+        staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-{os.getpid()}-"))
         try:
             # mkdtemp makes the directory private (0700): give it the usual umask permissions.
             os.chmod(staging, 0o777 & ~_umask())

@@ -50,6 +50,7 @@ from dispgns.capacity import Attempt, drive
 from dispgns.graph import Graph, GraphCapacity
 from dispgns.model import ModelConfig, apply_network
 from dispgns.tuning import jitted
+from dispgns.validation import check_particles
 
 __all__ = [
     "PredictedStep",
@@ -368,7 +369,9 @@ def _grower(model_config: ModelConfig, mask):
     return grow
 
 
-def _host_inputs(position_seq, radius, mask, model_config: ModelConfig, *, batched: bool, pure: str):
+def _host_inputs(
+    position_seq, radius, mask, model_config: ModelConfig, *, batched: bool, pure: str, validate: bool = True
+):
     """Concrete, validated inputs of a host convenience: float positions, radius in their dtype, bool mask."""
     x = host_array(position_seq, "positions", pure=pure)
     if not np.issubdtype(x.dtype, np.floating):
@@ -389,11 +392,18 @@ def _host_inputs(position_seq, radius, mask, model_config: ModelConfig, *, batch
     m = np.ones(particles, bool) if mask is None else host_array(mask, "mask", pure=pure).astype(bool)
     if m.shape != particles:
         raise ValueError(f"mask must have shape {particles}, got {m.shape}")
-    bad = ~(np.isfinite(a) & (a > 0)) & m
-    if np.any(bad):
-        raise ValueError(
-            f"radius must be finite and > 0 for every real particle; got {a[bad][:5].tolist()} "
-            f"({int(bad.sum())} bad value(s))"
+    if validate:
+        # Cheap host checks (dispgns.validation): the pure cores would return NaN or plausible nonsense.
+        check_particles(
+            x,
+            a,
+            mask=m,
+            bounds=model_config.bounds,
+            box="the model's bounds",
+            position_name="positions",
+            # The network takes any configuration (overlaps only change its features); the physics does not.
+            overlaps=False,
+            model_connectivity_radius=model_config.connectivity_radius,
         )
     return x, a, m
 

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 import signal
+import sys
 import threading
+from pathlib import Path
 
 from dispgns.cli import CLIError
 
@@ -27,8 +30,79 @@ def sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
+# Signals turned into KeyboardInterrupt by this process, newest last (for the exit status).
+_received: list[int] = []
+
+
 def _raise_interrupt(signum, frame):
+    _received.append(signum)
     raise KeyboardInterrupt
+
+
+def interrupted_status() -> int:
+    """The usual exit status of an interrupted command: 143 after a SIGTERM, 130 after Ctrl-C."""
+    return 128 + int(_received[-1] if _received else signal.SIGINT)
+
+
+def reset_interrupts() -> None:
+    """Forget earlier signals (``main()`` may run several commands in one process)."""
+    _received.clear()
+
+
+def clean_leftovers(*targets) -> None:
+    """Remove (and say so) what an earlier, killed run of the command left beside its outputs ``targets``."""
+    from dispgns.files import remove_leftovers
+
+    for target in targets:
+        for path, done in remove_leftovers(target):
+            print(f"{path.name}: {done} (left by an interrupted earlier run)", file=sys.stderr)
+
+
+def file_error(error: OSError, out) -> CLIError:
+    """A :class:`CLIError` for an output that exists (``--overwrite``) or cannot be written (one line)."""
+    if isinstance(error, FileExistsError):
+        text = str(error)
+        if "allow overwriting it" in text or "allow replacing it" in text:
+            text += " (--overwrite)"
+        return CLIError(text)
+    where = error.filename or out
+    return CLIError(f"cannot write to {where}: {error.strerror or error}")
+
+
+def check_output(out, *, overwrite: bool, marker: str, kind: str) -> None:
+    """Refuse ``--out`` up front (before a long computation), as :func:`output_directory` would."""
+    from dispgns.files import check_output_directory
+
+    out = Path(out)
+    if out.suffix.lower() in (".gif", ".mp4", ".png", ".json", ".h5"):
+        raise CLIError(f"--out {out}: expected a directory (the files are written inside it), got a file name")
+    try:
+        check_output_directory(out, overwrite, marker, kind)
+    except OSError as error:
+        raise file_error(error, out) from None
+    parent = next((p for p in out.absolute().parents if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise CLIError(f"cannot write to {out}: {parent} is not a writable directory")
+
+
+@contextlib.contextmanager
+def output_directory(out, *, overwrite: bool, marker: str, kind: str):
+    """Stage the output directory ``--out`` (see :func:`dispgns.files.staged_directory`) with CLI errors.
+
+    Leftovers of a killed earlier run are removed first; an existing ``out``
+    needs ``--overwrite`` and must hold ``marker``; an unwritable place or a
+    failed write is one line. Yields the staging directory.
+    """
+    from dispgns.files import staged_directory
+
+    out = Path(out)
+    check_output(out, overwrite=overwrite, marker=marker, kind=kind)
+    clean_leftovers(out)
+    try:
+        with staged_directory(out, overwrite=overwrite, marker=marker, kind=kind) as staging:
+            yield staging
+    except OSError as error:
+        raise file_error(error, out) from None
 
 
 def cpu_tuned(args) -> bool:

@@ -8,9 +8,18 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import add_model_argument, fmt, load_model_argument, network_options, physics_options
+from dispgns.cli._common import (
+    add_model_argument,
+    check_output,
+    fmt,
+    load_model_argument,
+    network_options,
+    output_directory,
+    physics_options,
+)
 
 DEFAULT_SEED = 2025
+METRICS_FILE = "metrics.json"
 DEFAULT_RADII_MM = "2.25,3.25,3.75,4.75"  # one of the paper's unseen-radii groups
 
 
@@ -34,7 +43,14 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--frames", type=int, default=500, metavar="T", help="frames to simulate (default 500)")
     parser.add_argument(
-        "--out", default="dispgns-demo", metavar="DIR", help="output directory (default ./dispgns-demo)"
+        "--out",
+        default="dispgns-demo",
+        metavar="DIR",
+        help="output directory, new or empty (default ./dispgns-demo): rollout.gif, rollout.mp4, "
+        "rollout_grid.png, error_curve.png, metrics.json",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier demo in DIR (a directory with metrics.json)"
     )
     add_model_argument(parser)
     parser.add_argument("--stride", type=int, default=2, help="animation draws every STRIDE-th frame (default 2)")
@@ -64,13 +80,15 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.training.checkpoint import write_json
 
     radii = _radii(args.radii)
+    out = Path(args.out)
+    # Refused before minutes of computing: an existing output needs --overwrite.
+    check_output(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="demo")
     params, model_config, info = load_model_argument(args)
     c = model_config.input_sequence_length
     if args.frames <= c:
         raise CLIError(f"--frames {args.frames}: expected more than C = {c} input frames")
     if args.stride < 1:
         raise CLIError(f"--stride {args.stride}: expected >= 1")
-    out = Path(args.out)
     config = PhysicsConfig()
     half, save_every = config.box_half_size, 15
     frame_dt = save_every * config.dt
@@ -86,11 +104,6 @@ def run(args: argparse.Namespace) -> int:
         state = sample_initial_state(jax.random.PRNGKey(args.seed), radii, config)
     except (PlacementError, ValueError) as error:
         raise CLIError(f"--radii {args.radii}: {error}") from None
-    # Created only once the inputs are known to work: a failed start leaves nothing behind.
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
     truth = (
         np.asarray(
             simulate(
@@ -154,44 +167,54 @@ def run(args: argparse.Namespace) -> int:
         chaos_floor=None if chaos is None else chaos.astype(np.float32),
         physics_config=config,
     )
+    print("writing pictures ...", flush=True)
+    start = time.perf_counter()
+    with output_directory(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="demo") as staging:
+        files = save_rollout_animation(
+            str(staging / "rollout"),
+            truth,
+            prediction,
+            radius,
+            mp4=not args.no_mp4,
+            input_frames=c,
+            stride=args.stride,
+            frame_dt=frame_dt,
+            box_half_size=half,
+        )
+        grid_frames = np.linspace(0, args.frames - 1, 5).round().astype(int).tolist()
+        frame_grid(
+            truth,
+            prediction,
+            radius,
+            grid_frames,
+            frame_dt=frame_dt,
+            box_half_size=half,
+            path=staging / "rollout_grid.png",
+        )
+        plot_rollout_errors(
+            metrics,
+            frame_dt=frame_dt,
+            title=f"demo rollout (seed {args.seed}, N = {n})",
+            path=staging / "error_curve.png",
+        )
+        timings["pictures_s"] = time.perf_counter() - start
+        report = {
+            "seed": args.seed,
+            "radii_mm": [r * 1e3 for r in radii],
+            "n_particles": n,
+            "frames": args.frames,
+            "model": {"source": info.get("source"), "config": model_config.to_dict()},
+            "timings": timings,
+            "metrics": metrics,
+        }
+        write_json(staging / METRICS_FILE, report)
     print()
     print(summary_table(metrics, timings, steps, (args.frames - 1) * save_every))
     print()
-
-    start = time.perf_counter()
-    files = save_rollout_animation(
-        str(out / "rollout"),
-        truth,
-        prediction,
-        radius,
-        mp4=not args.no_mp4,
-        input_frames=c,
-        stride=args.stride,
-        frame_dt=frame_dt,
-        box_half_size=half,
-    )
-    grid_frames = np.linspace(0, args.frames - 1, 5).round().astype(int).tolist()
-    frame_grid(
-        truth, prediction, radius, grid_frames, frame_dt=frame_dt, box_half_size=half, path=out / "rollout_grid.png"
-    )
-    plot_rollout_errors(
-        metrics, frame_dt=frame_dt, title=f"demo rollout (seed {args.seed}, N = {n})", path=out / "error_curve.png"
-    )
-    timings["pictures_s"] = time.perf_counter() - start
-    report = {
-        "seed": args.seed,
-        "radii_mm": [r * 1e3 for r in radii],
-        "n_particles": n,
-        "frames": args.frames,
-        "model": {"source": info.get("source"), "config": model_config.to_dict()},
-        "timings": timings,
-        "metrics": metrics,
-    }
-    write_json(out / "metrics.json", report)
     written = (
-        [files["gif"]]
-        + ([files["mp4"]] if files["mp4"] else [])
-        + [str(out / "rollout_grid.png"), str(out / "error_curve.png"), str(out / "metrics.json")]
+        [out / "rollout.gif"]
+        + ([out / "rollout.mp4"] if files["mp4"] else [])
+        + [out / "rollout_grid.png", out / "error_curve.png", out / METRICS_FILE]
     )
     print("wrote:")
     for path in written:
@@ -224,6 +247,10 @@ def summary_table(metrics, timings, steps: int, euler_steps: int) -> str:
         ("time: ground-truth physics", f"{timings['physics_s']:.1f} s ({euler_steps} Euler steps, with compilation)"),
         ("time: learned simulator", f"{timings['gnn_rollout_s']:.1f} s ({steps} steps, with compilation)"),
     ]
+    if "chaos_floor_s" in timings:
+        rows.append(("time: chaos floor (physics again)", f"{timings['chaos_floor_s']:.1f} s"))
+    if "pictures_s" in timings:
+        rows.append(("time: writing pictures and metrics", f"{timings['pictures_s']:.1f} s"))
     width = max(len(r[0]) for r in rows)
     lines = [f"| {'metric'.ljust(width)} | value |", f"| {'-' * width} | --- |"]
     lines += [f"| {label.ljust(width)} | {value} |" for label, value in rows]

@@ -10,6 +10,8 @@ from dispgns.cli import CLIError
 from dispgns.cli._common import (
     add_distributed_arguments,
     add_model_argument,
+    clean_leftovers,
+    file_error,
     fmt,
     load_model_argument,
     local_mesh,
@@ -87,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory() as scratch:
             _evaluate(args, params, model_config, info, metadata, splits, Path(scratch))
         return 0
+    clean_leftovers(out)
     # Everything is written into a staging directory renamed to --out at the
     # end: an interrupted or failed evaluation leaves nothing half-written.
     try:
@@ -95,10 +98,8 @@ def run(args: argparse.Namespace) -> int:
             staged_directory(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="evaluation") as staging,
         ):
             report = _evaluate(args, params, model_config, info, metadata, splits, staging)
-    except FileExistsError as error:
-        raise CLIError(str(error)) from None
     except OSError as error:
-        raise CLIError(f"cannot write to {out}: {error.strerror or error}") from None
+        raise file_error(error, out) from None
     print(table(report))
     print(f"wrote {out / METRICS_FILE}, {out / 'predictions'}/*.h5 and {out}/error_curves_*.png")
     return 0
@@ -164,6 +165,8 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
                 compiler_options=network_options(args, model_config),
                 physics_compiler_options=physics_options(args),
             )
+        except ValueError as error:  # the host conveniences' input checks: a dataset the model cannot take
+            raise CLIError(f"{Path(args.data) / (split + '.h5')}: {error}") from None
         finally:
             bar.close()
         predicted = [

@@ -7,7 +7,7 @@ import contextlib
 import time
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import physics_options, sigterm_as_interrupt
+from dispgns.cli._common import clean_leftovers, file_error, physics_options, sigterm_as_interrupt
 
 _COUNT_OPTIONS = (("train", "train"), ("valid", "valid"), ("test", "test"), ("unseen", "test_unseen"))
 
@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
     # float64 must be on before the first array of the run is made; the
     # context keeps it local to this command (main() may be called in-process).
     precision = jax.enable_x64(True) if args.x64 else contextlib.nullcontext()
+    clean_leftovers(args.out)
     try:
         with precision, sigterm_as_interrupt():
             metadata = generate_dataset(
@@ -166,10 +167,10 @@ def run(args: argparse.Namespace) -> int:
                 progress=bars,
                 compiler_options=physics_options(args),
             )
-    except (FileExistsError, PlacementError, DatasetError, ValueError) as error:
+    except (PlacementError, DatasetError, ValueError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:
-        raise CLIError(f"cannot write the dataset to {args.out}: {error}") from None
+        raise file_error(error, args.out) from None
     finally:
         bars.close()
     elapsed = time.perf_counter() - start

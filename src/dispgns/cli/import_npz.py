@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from dispgns.cli import CLIError
+from dispgns.cli._common import clean_leftovers, file_error
 
 
 def register(subparsers) -> None:
@@ -56,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.save_every < 1:
         raise CLIError(f"--save-every {args.save_every}: expected at least 1")
+    clean_leftovers(args.out)
     try:
         metadata = import_authors_npz(
             args.file,
@@ -66,10 +68,10 @@ def run(args: argparse.Namespace) -> int:
             save_every=args.save_every,
             overwrite=args.overwrite,
         )
-    except (FileExistsError, DatasetError, ValueError) as error:
+    except (DatasetError, ValueError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:
-        raise CLIError(f"cannot import {args.file} into {args.out}: {error}") from None
+        raise file_error(error, args.out) from None
     counts = metadata.particle_counts[args.split]
     print(f"wrote {args.out} (split {args.split})")
     print(

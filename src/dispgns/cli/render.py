@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import add_model_argument, load_model_argument, network_options
+from dispgns.cli._common import add_model_argument, check_output, load_model_argument, network_options, output_directory
 
 
 def register(subparsers) -> None:
@@ -15,8 +15,8 @@ def register(subparsers) -> None:
         help="animate ground truth next to a model's rollout",
         description="Draw one trajectory of a dataset split next to a prediction: either rolled out here by "
         "the model (--model, default the shipped one) or read from a predictions file written by "
-        "dispgns evaluate (--predictions). Writes OUT.gif (and OUT.mp4 when ffmpeg is available) "
-        "and OUT_grid.png, a still grid of a few frames.",
+        "dispgns evaluate (--predictions). Writes DIR/rollout.gif (and DIR/rollout.mp4 when ffmpeg is "
+        "available), DIR/rollout_grid.png, a still grid of a few frames, and DIR/render.json (what was drawn).",
     )
     parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory")
     parser.add_argument("--split", default="test_unseen", help="split (default test_unseen)")
@@ -29,9 +29,13 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--out",
-        default="dispgns-render/rollout",
-        metavar="PREFIX",
-        help="output prefix (default dispgns-render/rollout): PREFIX.gif, PREFIX.mp4, PREFIX_grid.png",
+        default="dispgns-render",
+        metavar="DIR",
+        help="output directory, new or empty (default ./dispgns-render): DIR/rollout.gif, DIR/rollout.mp4, "
+        "DIR/rollout_grid.png, DIR/render.json",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier render in DIR (a directory with render.json)"
     )
     parser.add_argument("--start", type=int, default=0, help="first frame of the animation")
     parser.add_argument("--stop", type=int, help="frame after the last one of the animation (default: the end)")
@@ -44,6 +48,9 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--no-mp4", action="store_true", help="GIF only")
     parser.set_defaults(func=run)
+
+
+RENDER_FILE = "render.json"
 
 
 def _frames(text: str) -> list[int]:
@@ -62,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.data import DatasetError, load_dataset, read_split
     from dispgns.evaluation import predict_trajectories
     from dispgns.render import frame_grid, save_rollout_animation
+    from dispgns.training.checkpoint import write_json
 
+    check_output(args.out, overwrite=args.overwrite, marker=RENDER_FILE, kind="render")
     try:
         metadata, splits = load_dataset(args.data, [args.split])
     except DatasetError as error:
@@ -100,11 +109,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         params, model_config, _ = load_model_argument(args)
         input_frames = model_config.input_sequence_length
-        prediction = np.asarray(
-            predict_trajectories(
-                params, [truth], model_config=model_config, compiler_options=network_options(args, model_config)
-            )[0]
-        )
+        try:
+            prediction = np.asarray(
+                predict_trajectories(
+                    params, [truth], model_config=model_config, compiler_options=network_options(args, model_config)
+                )[0]
+            )
+        except ValueError as error:  # the input checks: a trajectory the model cannot take
+            raise CLIError(f"{args.split} trajectory {args.index}: {error}") from None
     frames = prediction.shape[0]
     truth_frames = np.asarray(truth.position)[:frames]
     grid_frames = grid_text if grid_text is not None else np.linspace(0, frames - 1, 5).round().astype(int).tolist()
@@ -113,33 +125,34 @@ def run(args: argparse.Namespace) -> int:
             raise CLIError(f"--grid-frames: frame {f} is outside 0..{frames - 1}")
     if not 0 <= args.start < frames or (args.stop is not None and not args.start < args.stop <= frames):
         raise CLIError(f"--start/--stop: expected 0 <= start < stop <= {frames}")
-    prefix = Path(args.out)
-    if prefix.suffix.lower() in (".gif", ".mp4", ".png"):
-        prefix = prefix.with_suffix("")
-    try:
-        prefix.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise CLIError(f"cannot write to {prefix.parent}: {error.strerror or error}") from None
+    out = Path(args.out)
     common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.box_half_size)
-    files = save_rollout_animation(
-        str(prefix),
-        truth_frames,
-        prediction,
-        np.asarray(truth.radius),
-        mp4=not args.no_mp4,
-        input_frames=input_frames or 6,
-        start=args.start,
-        stop=args.stop,
-        stride=args.stride,
-        fps=args.fps,
-        **common,
-    )
-    grid = f"{prefix}_grid.png"
-    frame_grid(truth_frames, prediction, np.asarray(truth.radius), grid_frames, path=grid, **common)
-    written = [files["gif"]] + ([files["mp4"]] if files["mp4"] else []) + [grid]
+    with output_directory(out, overwrite=args.overwrite, marker=RENDER_FILE, kind="render") as staging:
+        files = save_rollout_animation(
+            str(staging / "rollout"),
+            truth_frames,
+            prediction,
+            np.asarray(truth.radius),
+            mp4=not args.no_mp4,
+            input_frames=input_frames or 6,
+            start=args.start,
+            stop=args.stop,
+            stride=args.stride,
+            fps=args.fps,
+            **common,
+        )
+        frame_grid(
+            truth_frames, prediction, np.asarray(truth.radius), grid_frames, path=staging / "rollout_grid.png", **common
+        )
+        source = {"predictions": str(args.predictions)} if args.predictions else {"model": args.model or "shipped"}
+        write_json(
+            staging / RENDER_FILE,
+            {"data": str(args.data), "split": args.split, "index": args.index, **source, "frames": frames},
+        )
+    written = ["rollout.gif"] + (["rollout.mp4"] if files["mp4"] else []) + ["rollout_grid.png", RENDER_FILE]
     print(
         "wrote "
-        + ", ".join(written)
+        + ", ".join(str(out / name) for name in written)
         + (f" (mp4 skipped: {files['mp4_skipped']})" if files["mp4_skipped"] and not args.no_mp4 else "")
     )
     return 0

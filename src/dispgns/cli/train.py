@@ -13,11 +13,16 @@ from typing import Any
 from dispgns.cli import CLIError
 from dispgns.cli._common import (
     add_distributed_arguments,
+    clean_leftovers,
     compute_config,
+    file_error,
+    interrupted_status,
     network_options,
     sigterm_as_interrupt,
     start_distributed,
 )
+
+DEFAULT_CONFIG = "cpu"  # dispgns.pretrained.DEFAULT_CONFIG (not imported here: --help stays fast)
 
 # Training fields that may change when a run is resumed: they decide how long
 # and how often, not what is learned.
@@ -46,8 +51,12 @@ def register(subparsers) -> None:
     parser.add_argument("--out", required=True, metavar="RUN", help="run directory to create (or resume)")
     parser.add_argument(
         "--config",
-        metavar="YAML",
-        help="YAML file with 'model:' and 'train:' sections (ModelConfig / TrainConfig fields)",
+        metavar="NAME|YAML",
+        help=f"a shipped configuration: '{DEFAULT_CONFIG}' (default: the shipped model's, sized for a CPU, "
+        "about 4 h on 2 cores), 'paper_gpu' (the paper's 2.6 M-parameter network and 2 M steps with "
+        "dispgns's fixes: for a GPU) or 'paper' (the authors' exact recipe, for a GPU); or a YAML file with "
+        "'model:' and 'train:' sections (ModelConfig / TrainConfig fields; unset fields take the dataclass "
+        "defaults)",
     )
     parser.add_argument(
         "--set",
@@ -113,6 +122,20 @@ def _read_yaml(path: str) -> dict[str, Any]:
     return {section: dict(values.get(section) or {}) for section in ("model", "train")}
 
 
+def _config_values(config: str) -> dict[str, dict[str, Any]]:
+    """``{"model": ..., "train": ...}`` of ``--config``: a shipped name (``cpu``, ``paper_gpu``, ``paper``) or YAML."""
+    from dispgns.pretrained import CONFIG_NAMES, named_config
+
+    if config in CONFIG_NAMES and not Path(config).is_file():
+        named = named_config(config)
+        return {section: dict(fields) for section, fields in named.values.items()}
+    if not Path(config).exists() and not config.endswith((".yaml", ".yml")):
+        raise CLIError(
+            f"--config {config}: neither a shipped configuration ({', '.join(CONFIG_NAMES)}) nor a YAML file"
+        )
+    return _read_yaml(config)
+
+
 def _apply_overrides(values: dict[str, dict[str, Any]], overrides: list[str]) -> None:
     import yaml
 
@@ -138,17 +161,22 @@ def resolve_configs(args: argparse.Namespace, default_connectivity_radius: float
     from dispgns.model import ModelConfig
     from dispgns.training import TrainConfig
 
-    values = _read_yaml(args.config) if args.config else {"model": {}, "train": {}}
+    values = _config_values(args.config) if args.config else {"model": {}, "train": {}}
     _apply_overrides(values, args.overrides)
     if args.steps is not None:
         values["train"]["num_steps"] = args.steps
     explicit = {section: dict(fields) for section, fields in values.items()}
+    if not args.config:
+        # No --config: the shipped model's configuration, under what the user set (not "explicit":
+        # a resumed run keeps the configuration it was started with).
+        base = _config_values(DEFAULT_CONFIG)
+        values = {section: {**base[section], **values[section]} for section in ("model", "train")}
     model_values = dict(values["model"])
     if "connectivity_radius" not in model_values and default_connectivity_radius is not None:
         model_values["connectivity_radius"] = float(default_connectivity_radius)
     flags = [flag for flag, used in (("--set", args.overrides), ("--steps", args.steps is not None)) if used]
     # Name every source the values came from: the YAML file may not be the culprit.
-    where = " + ".join(([args.config] if args.config else []) + flags) or "defaults"
+    where = " + ".join([f"--config {args.config or DEFAULT_CONFIG}"] + flags)
     try:
         model_config = ModelConfig.from_dict(model_values)
     except (TypeError, ValueError) as error:
@@ -289,6 +317,8 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.training.loop import NonFiniteLossError, Validator, train
 
     run_dir = Path(args.out)
+    if args.config:
+        _config_values(args.config)  # a wrong name or file fails before the dataset is read
     try:
         metadata, splits = load_dataset(args.data, ["train"])
         valid = load_dataset(args.data, ["valid"])[1]["valid"] if "valid" in metadata.splits else []
@@ -349,18 +379,31 @@ def run(args: argparse.Namespace) -> int:
         _create_run_dir(run_dir, overwrite=args.overwrite)
     if parallel is not None:
         parallel.barrier("run directory")
-    checkpointer = Checkpointer(run_dir, keep=train_config.keep_checkpoints, config=config)
+    if primary:
+        clean_leftovers(*(run_dir / name for name in (MODEL_DIR, CONFIG_FILE, LOG_FILE, "training_curve.png")))
+    checkpointer = Checkpointer(
+        run_dir, keep=train_config.keep_checkpoints, config=config, remove_leftovers=primary and args.resume
+    )
+    for path in checkpointer.removed:
+        print(f"{path}: removed (an unfinished checkpoint of an interrupted earlier run)", file=sys.stderr)
     log = JsonlLog(run_dir / LOG_FILE)
     if args.resume:
         if checkpointer.latest_step() is not None:
             try:
-                state, key, _ = checkpointer.restore(state, key)
+                state, key, extra = checkpointer.restore(state, key)
             except CheckpointError as error:
                 checkpointer.close()
-                raise CLIError(str(error)) from None
-        # Records past the checkpoint (or all, if the run died before its first one) are redone.
+                raise CLIError(f"cannot resume: {error}") from None
+            for reason in extra.get("skipped", []):
+                print(f"skipped a damaged checkpoint: {reason}", file=sys.stderr)
+            if extra.get("skipped"):
+                print(f"resuming from the newest intact checkpoint, step {int(state.step)}", file=sys.stderr)
+        # Records past the checkpoint (or all, if the run died before its first one) are redone; a run
+        # that had reached its last step redoes its final validation, so that record goes too.
         if primary:
             log.truncate_after(int(state.step))
+            if int(state.step) >= train_config.num_steps and validator is not None:
+                log.drop(kind="validation", step=int(state.step))
     if primary:
         write_json(run_dir / CONFIG_FILE, config)
 
@@ -368,6 +411,9 @@ def run(args: argparse.Namespace) -> int:
     progress = _Progress(first, last, enabled=primary and not args.no_progress)
     if first >= last:
         progress.write(f"run is already at step {first} >= {last}; nothing to train (raise --steps to continue)")
+    elif primary and not args.resume:
+        progress.write(_plan(args, explicit, state.params, last - first))
+    timer = _StepTimer(first, last, progress.write if primary else None)
 
     extra_loggers = _make_loggers(args, run_dir, config) if primary else LoggerGroup([])
 
@@ -391,7 +437,7 @@ def run(args: argparse.Namespace) -> int:
                 until_step=last,
                 validator=validator,
                 checkpointer=checkpointer,
-                on_step=progress.step,
+                on_step=timer.wrap(progress.step),
                 on_log=on_log,
                 compiler_options=options,
                 parallel=parallel,
@@ -404,7 +450,7 @@ def run(args: argparse.Namespace) -> int:
         extra_loggers.close()
     state = result.state
     if not primary:
-        return 130 if result.interrupted else 0
+        return interrupted_status() if result.interrupted else 0
     records = log.read()
     record = {
         "steps": int(state.step),
@@ -412,16 +458,22 @@ def run(args: argparse.Namespace) -> int:
         "dataset": dataset_info,
         "last_validation": result.last_validation,
     }
+    if result.interrupted:
+        record["interrupted"] = True
     params = state.params if parallel is None else parallel.local(state.params)
-    export_model(run_dir / MODEL_DIR, params, model_config, record)
-    _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
+    try:
+        export_model(run_dir / MODEL_DIR, params, model_config, record)
+        _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
+    except OSError as error:
+        raise file_error(error, run_dir) from None
     if result.interrupted:
         print(
-            f"interrupted at step {int(state.step)}; checkpoint saved in {run_dir}; continue with "
-            f"dispgns train --data {args.data} --out {args.out} --resume",
+            f"interrupted at step {int(state.step)} of {last}; checkpoint saved in {run_dir}; "
+            f"{run_dir / MODEL_DIR} holds the model of step {int(state.step)} (interrupted, not the final one); "
+            f"continue with dispgns train --data {args.data} --out {args.out} --resume",
             file=sys.stderr,
         )
-        return 130
+        return interrupted_status()
     print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
     return 0
 
@@ -441,6 +493,76 @@ def _make_loggers(args, run_dir: Path, config):
         LoggerGroup(loggers).close()
         raise CLIError(str(error)) from None
     return LoggerGroup(loggers)
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 3 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.0f} days"
+
+
+def _plan(args, explicit, params, steps: int) -> str:
+    """What is about to be trained and, for a shipped configuration, how long it took on a 2-core CPU."""
+    import jax
+
+    from dispgns.pretrained import CONFIG_NAMES, named_config
+
+    count = sum(x.size for x in jax.tree_util.tree_leaves(params["network"]))
+    name = args.config or DEFAULT_CONFIG
+    text = f"training {steps:,} steps of a {count / 1e6:.2g} M-parameter network"
+    if name in CONFIG_NAMES and not Path(name).is_file():
+        named = named_config(name)
+        changed = any(named.values["model"].get(k) != v for k, v in explicit["model"].items())
+        text += f" (--config {name}{' with another network (--set)' if changed else ''}: {named.summary})"
+        if changed:
+            pass  # the shipped run's time per step says nothing about another network
+        elif named.seconds_per_step is not None:
+            text += (
+                f"; expected about {_duration(steps * named.seconds_per_step)} on a 2-core CPU "
+                f"({named.seconds_per_step:.2f} s/step when the shipped model was trained)"
+            )
+        else:
+            text += "; on a CPU this takes weeks"
+    text += "; the time per step measured here follows after the first steps. Ctrl-C checkpoints; --resume continues"
+    return text
+
+
+class _StepTimer:
+    """Prints, once, the time per step measured after compilation and the expected time to the last step."""
+
+    # Steps timed after the first (compiling) one; and at most this many seconds of timing.
+    STEPS, SECONDS = 20, 30.0
+
+    def __init__(self, first: int, last: int, write):
+        self.first, self.last, self.write = first, last, write
+        self.start = None
+        self.done = write is None
+
+    def wrap(self, on_step):
+        import time
+
+        def step(step, metrics):
+            on_step(step, metrics)
+            if self.done:
+                return
+            now = time.perf_counter()
+            if self.start is None:
+                self.start = (step, now)  # after the first step: compilation is behind us
+                return
+            taken, elapsed = step - self.start[0], now - self.start[1]
+            if taken >= self.STEPS or elapsed >= self.SECONDS or step >= self.last:
+                self.done = True
+                per_step = elapsed / max(1, taken)
+                self.write(
+                    f"measured {per_step:.3g} s/step: the remaining {self.last - step:,} steps take about "
+                    f"{_duration(per_step * (self.last - step))} on this machine"
+                )
+
+        return step
 
 
 def _data_parallel(args, batch_size: int):

@@ -702,6 +702,9 @@ def write_split(
 
     The file is written under a temporary name in the same directory and
     renamed over ``path`` only once complete; on error nothing is left behind.
+    Every array is stored with a Fletcher32 checksum, so a flipped bit fails
+    :func:`read_split` with a :class:`DatasetError` (files written before
+    checksums were added read as before, unchecked).
 
     Args:
       path: target ``.h5`` file.
@@ -722,7 +725,7 @@ def write_split(
     for index, trajectory in enumerate(trajectories):
         validate_trajectory(
             trajectory,
-            f"{path.name}: trajectory {trajectory_name(index)}",
+            f"{path}: trajectory {trajectory_name(index)}",
             dim=dim,
             box_half_size=box_half_size,
             predicted=predicted,
@@ -733,17 +736,24 @@ def write_split(
             file.attrs["predicted"] = True
         for index, trajectory in enumerate(trajectories):
             group = file.create_group(trajectory_name(index))
-            group.create_dataset("position", data=trajectory.position)
-            group.create_dataset("radius", data=trajectory.radius)
-            group.create_dataset("particle_type", data=trajectory.particle_type)
+            _put(group, "position", trajectory.position)
+            _put(group, "radius", trajectory.radius)
+            _put(group, "particle_type", trajectory.particle_type)
             if trajectory.has_initial_state:
                 for name in _INITIAL_FIELDS:
-                    group.create_dataset(name, data=getattr(trajectory, name))
+                    _put(group, name, getattr(trajectory, name))
             for key, value in trajectory.attrs.items():
                 # HDF5 has no null: absent attributes read back as absent.
                 if value is not None:
                     group.attrs[key] = value
     return path
+
+
+def _put(group, name: str, data) -> None:
+    """One array written with a Fletcher32 checksum (a flipped bit fails the read), when HDF5 allows one."""
+    data = np.asarray(data)
+    # Checksums need chunked storage, which scalars and empty arrays cannot have.
+    group.create_dataset(name, data=data, fletcher32=bool(data.ndim and data.size))
 
 
 def write_metadata(directory: str | os.PathLike, metadata: DatasetMetadata) -> Path:
@@ -787,10 +797,10 @@ def read_split(path: str | os.PathLike, metadata: DatasetMetadata | None = None)
       The trajectories in group order (``00000``, ``00001``, ...).
     """
     path = Path(path)
-    name = path.name
+    name = str(path)
     expected = metadata.expected_for(path.stem) if metadata is not None else {}
     if not path.is_file():
-        raise DatasetError(f"{name}: file not found at {path}")
+        raise DatasetError(f"{name}: file not found")
     try:
         file = h5py.File(path, "r")
     except OSError as error:

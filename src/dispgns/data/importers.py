@@ -253,9 +253,7 @@ def write_imported(
                 f"added to a dataset imported the same way ({source})"
             )
         if split in existing.trajectory_counts and not overwrite:
-            raise FileExistsError(
-                f"{out_dir} already has a {split!r} split; allow replacing it (overwrite=True, --overwrite)"
-            )
+            raise FileExistsError(f"{out_dir} already has a {split!r} split; allow replacing it")
         for field, have, want in (
             ("dim", existing.dim, dim),
             ("sequence_length", existing.sequence_length, n_frames),

@@ -16,6 +16,7 @@ from dispgns.capacity import Attempt, coarse_ladder, drive, ladder
 from dispgns.physics.config import PhysicsConfig
 
 __all__ = [
+    "MAX_PARTICLES",
     "InitialState",
     "PlacementError",
     "particle_count_range",
@@ -77,6 +78,13 @@ def _ball_volume(radius, dim: int):
     """Volume of a ``dim``-ball (area of a disk in 2-D)."""
     return math.pi ** (dim / 2) / math.gamma(dim / 2 + 1) * radius**dim
 
+
+# The default size guard of sample_initial_state: its arrays and the simulation after it grow with N,
+# and a radius typed in the wrong unit asks for tens of millions of particles.
+MAX_PARTICLES = 1_000_000
+
+# Particles placed per compiled call of place_particles (Ctrl-C is seen between calls).
+_BLOCK = 4096
 
 # Particle indices (neighbour lists, graphs) are int32.
 _MAX_PARTICLES = 2**31 - 1
@@ -172,8 +180,11 @@ def place_particles(
     )
 
     def run(state, capacity, remaining):
+        # At most _BLOCK particles per compiled call: the host regains control between calls, so Ctrl-C
+        # (KeyboardInterrupt) stops a long placement within one block. Same keys, same result.
+        stop = min(n_real, int(state[4]) + _BLOCK)
         new_state, overflow = _place_jit(
-            key, radius, start_height, n_real, state, half_sizes, grid, capacity, candidates, max_rounds
+            key, radius, start_height, stop, state, half_sizes, grid, capacity, candidates, max_rounds
         )
         done = int(new_state[4]) - int(state[4])
         return Attempt(new_state, None, done, bool(overflow))
@@ -274,6 +285,7 @@ def sample_initial_state(
     dtype=None,
     candidates: int = 64,
     max_rounds: int = 64,
+    max_particles: int = MAX_PARTICLES,
 ) -> InitialState:
     """Draw one initial state with the authors' protocol.
 
@@ -288,14 +300,24 @@ def sample_initial_state(
 
     The particle count is data-dependent, so this function runs eagerly with
     a concrete ``key``; its placement core is jitted. The same key always
-    gives the same state.
+    gives the same state. Ctrl-C stops the placement within one block of
+    particles.
+
+    ``max_particles`` (default :data:`MAX_PARTICLES` = 1,000,000) is a size
+    guard: a count beyond it (drawn by the protocol or given) is refused up
+    front, before any work, with the count in the message.
 
     Raises:
+      ValueError: bad radii, a count of 0 or beyond ``max_particles``.
       PlacementError: when some particle finds no free spot after
         ``candidates * max_rounds`` draws (the packing is too dense).
     """
     radii_choices = np.asarray(radii_choices, dtype=float)
-    if radii_choices.ndim != 1 or radii_choices.size == 0 or np.any(radii_choices <= 0):
+    if (
+        radii_choices.ndim != 1
+        or radii_choices.size == 0
+        or not np.all(np.isfinite(radii_choices) & (radii_choices > 0))
+    ):
         raise ValueError(f"radii_choices must be a non-empty list of radii > 0 m, got {radii_choices.tolist()}")
     half_sizes = config.half_sizes(dim)
     half = half_sizes[-1]
@@ -310,11 +332,30 @@ def sample_initial_state(
         start_height = float(jax.random.uniform(key_height, (), minval=-0.25 * half, maxval=0.0))
     if not (-half < start_height < half):
         raise ValueError(f"start_height must lie inside the box (-{half}, {half}) m, got {start_height}")
-    if n_particles is None:
+    drawn = n_particles is None
+    if drawn:
         low, high = particle_count_range(start_height, float(radii_choices.max()), config, dim)
+        if low < 1:
+            raise ValueError(
+                f"the largest radius {radii_choices.max():g} m is too large for the protocol's particle count "
+                f"(floor(0.7 N_max) = {low} above y0 = {start_height:.4g} m in a box of half-sizes {half_sizes} m): "
+                f"use smaller radii or pass n_particles"
+            )
+        if low > max_particles:
+            raise ValueError(
+                f"radii {radii_choices.tolist()} m would place about {low:,} particles (the protocol's count for the "
+                f"largest radius {radii_choices.max():g} m in a box of half-sizes {half_sizes} m), more than "
+                f"max_particles = {max_particles:,}: are the radii in m? Use larger radii, pass n_particles, or "
+                f"raise max_particles"
+            )
         n_particles = int(jax.random.randint(key_count, (), low, high + 1))
-    if n_particles < 1:
-        raise ValueError(f"n_particles must be >= 1, got {n_particles}")
+    if isinstance(n_particles, bool) or not isinstance(n_particles, int | np.integer) or n_particles < 1:
+        raise ValueError(f"n_particles must be an integer >= 1, got {n_particles!r}")
+    if n_particles > max_particles:
+        raise ValueError(
+            f"n_particles = {n_particles:,} is more than max_particles = {max_particles:,}: raise max_particles to "
+            f"place that many"
+        )
     choice = jax.random.randint(key_radii, (n_particles,), 0, radii_choices.size)
     radius = jnp.asarray(radii_choices, dtype)[choice]
     if float(start_height) + 2 * float(radii_choices.max()) > half:
@@ -332,8 +373,14 @@ def sample_initial_state(
         raise PlacementError(
             f"could not place particle {first} of {n_particles} (radius {float(radius[first]):.4g} m) without "
             f"overlap after {candidates * max_rounds} random draws; the requested packing is too dense "
-            f"({fraction} fraction {filled:.2f} above y0 = {start_height:.4g} m). Use fewer particles, smaller "
-            f"radii or a lower start height."
+            f"({fraction} fraction {filled:.2f} above y0 = {start_height:.4g} m). "
+            + (
+                f"The protocol's count for these radii is too dense for random placement (it is sized for the "
+                f"largest radius; random placement of equal disks jams near an area fraction of 0.55): pass "
+                f"n_particles (about {max(1, int(0.9 * first))} fit here), several radii, or a lower start height."
+                if drawn
+                else "Use fewer particles, smaller radii or a lower start height."
+            )
         )
 
     vs = config.settling_speed(float(radii_choices.min()))

@@ -38,6 +38,7 @@ from dispgns.physics.config import PhysicsConfig
 from dispgns.physics.forces import external_force, interaction_force, neighbor_force, neighbor_table, particle_mass
 from dispgns.physics.walls import resolve_walls
 from dispgns.tuning import jitted
+from dispgns.validation import check_particles
 
 __all__ = [
     "PhysicsCapacity",
@@ -575,6 +576,24 @@ def _check_inputs(x0, v0, radius, mask, batched: bool):
     return x0, v0, radius, mask
 
 
+def _check_state(x0, v0, radius, mask, config: PhysicsConfig) -> None:
+    """The cheap host checks of :mod:`dispgns.validation` on a physics state (SI units, the box of ``config``)."""
+    if x0.shape[-2] == 0 or not bool(np.any(np.asarray(mask))):
+        raise ValueError(f"x0 holds no particles (shape {x0.shape}): expected at least one real particle")
+    halves = config.half_sizes(x0.shape[-1])
+    box = f"L = {halves[0]:g} m" if len(set(halves)) == 1 else f"half-sizes {', '.join(f'{h:g}' for h in halves)} m"
+    check_particles(
+        np.asarray(x0),
+        np.asarray(radius),
+        mask=np.asarray(mask),
+        velocity=np.asarray(v0),
+        bounds=tuple((-h, h) for h in halves),
+        box=f"the box ({box})",
+        position_name="x0",
+        velocity_name="v0",
+    )
+
+
 def simulate(
     x0,
     v0,
@@ -619,6 +638,7 @@ def simulate(
       ``x0`` is float64 and ``jax_enable_x64`` is on, float32 otherwise.
     """
     x0, v0, radius, mask = _host_inputs(x0, v0, radius, mask, batched=False, pure="dispgns.simulate_scan")
+    _check_state(x0, v0, radius, mask, config)
     _check_frames(n_frames, save_every)
     _check_collision_capacity(collision_capacity)
     settings = (n_frames, save_every, collision_capacity, chunk_frames, compiler_options)
@@ -659,6 +679,7 @@ def simulate_batch(
       positions ``(B, n_frames, N, D)`` in m (and velocities if asked).
     """
     x0, v0, radius, mask = _host_inputs(x0, v0, radius, mask, batched=True, pure="jax.vmap(dispgns.simulate_scan)")
+    _check_state(x0, v0, radius, mask, config)
     _check_frames(n_frames, save_every)
     _check_collision_capacity(collision_capacity)
     settings = (n_frames, save_every, collision_capacity, chunk_frames, compiler_options)

@@ -28,6 +28,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
+import shutil
 import signal
 import threading
 from collections.abc import Mapping
@@ -78,7 +80,36 @@ MODEL_FORMAT_VERSION = 1
 
 
 class CheckpointError(ValueError):
-    """A run directory, checkpoint or exported model is missing, malformed or does not match."""
+    """A run directory, checkpoint or exported model is missing, malformed or does not match.
+
+    ``mismatch`` is true when a checkpoint is intact but belongs to another configuration.
+    """
+
+    def __init__(self, message: str, *, mismatch: bool = False):
+        super().__init__(message)
+        self.mismatch = mismatch
+
+
+def _reason(error: BaseException) -> str:
+    """The first line of a library's error, without its advice to library users (``strict=False`` ...)."""
+    text = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    text = re.split(r"\s*(?:To restore|Please set|set `?strict|\bsee https?://)", text, maxsplit=1)[0].strip()
+    text = re.sub(r"<[^>]{60,}>", "<...>", text)  # object reprs (TensorStore specs)
+    return f"{type(error).__name__}: {text[:200]}" if text else type(error).__name__
+
+
+def _remove_orbax_temporaries(run_dir: Path) -> list[Path]:
+    """Remove orbax's temporary checkpoint folders under ``run_dir`` (left by a killed save); return them."""
+    removed = []
+    for folder in (run_dir / CHECKPOINT_DIR, run_dir / BEST_DIR):
+        if not folder.is_dir():
+            continue
+        for path in sorted(folder.iterdir()):
+            if ".orbax-checkpoint-tmp" in path.name:
+                shutil.rmtree(path, ignore_errors=True)
+                if not path.exists():
+                    removed.append(path)
+    return removed
 
 
 # ----------------------------------------------------------------------------- small file helpers
@@ -145,6 +176,11 @@ class JsonlLog:
                     raise CheckpointError(f"{self.path}: line {number} is not JSON") from None
         return records
 
+    def drop(self, *, kind: str, step: int) -> None:
+        """Drop the records of ``kind`` at ``step`` (one that a resumed run redoes), atomically."""
+        kept = [r for r in self.read() if not (r.get("kind") == kind and int(r.get("step", -1)) == step)]
+        write_atomic(self.path, "".join(json.dumps(r, default=_json_default) + "\n" for r in kept))
+
     def truncate_after(self, step: int) -> None:
         """Drop records past ``step`` (a resumed run rewrites them), atomically."""
         kept = [r for r in self.read() if int(r.get("step", 0)) <= step]
@@ -205,7 +241,7 @@ def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[s
 
 @contextlib.contextmanager
 def _interrupts_held():
-    """Hold Ctrl-C and SIGTERM back until the block is done, then raise KeyboardInterrupt.
+    """Hold Ctrl-C and SIGTERM back until the block is done, then deliver the first one received.
 
     Orbax finishes a save in a background thread: an interrupt in the middle
     would leave it running while the caller's interrupt handling saves the
@@ -223,6 +259,8 @@ def _interrupts_held():
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if received:
+        # Delivered again now, to the handler that was in place (a SIGTERM keeps its meaning and status).
+        signal.raise_signal(received[0])
         raise KeyboardInterrupt
 
 
@@ -236,9 +274,19 @@ class Checkpointer:
         every checkpoint.
     """
 
-    def __init__(self, run_dir: str | os.PathLike, *, keep: int = 3, config: Mapping[str, Any] | None = None):
+    def __init__(
+        self,
+        run_dir: str | os.PathLike,
+        *,
+        keep: int = 3,
+        config: Mapping[str, Any] | None = None,
+        remove_leftovers: bool = False,
+    ):
         self.run_dir = Path(run_dir)
         self.config = dict(config or {})
+        # Orbax saves under "<step>.orbax-checkpoint-tmp*" and renames; a killed save leaves that behind.
+        # Only a writer (the training run) removes them: a reader may run beside a live save.
+        self.removed: list[Path] = _remove_orbax_temporaries(self.run_dir) if remove_leftovers else []
         options = dict(create=True, enable_async_checkpointing=False)
         self._last = ocp.CheckpointManager(
             self.run_dir.absolute() / CHECKPOINT_DIR, options=ocp.CheckpointManagerOptions(max_to_keep=keep, **options)
@@ -308,26 +356,62 @@ class Checkpointer:
           ``validation``, ``config``.
         """
         manager = self._best if best else self._last
-        step = manager.latest_step() if step is None else step
-        if step is None:
+        if step is not None:
+            return self._restore_step(manager, step, template, key)
+        steps = sorted(manager.all_steps(), reverse=True)
+        if not steps:
             raise CheckpointError(f"{manager.directory}: no checkpoint to restore")
+        # The newest checkpoint that reads back; the damaged ones after it are reported, not hidden.
+        skipped = []
+        for candidate in steps:
+            try:
+                state, key_out, extra = self._restore_step(manager, candidate, template, key)
+            except CheckpointError as error:
+                if error.mismatch:  # every checkpoint of the run would disagree: no fallback
+                    raise
+                skipped.append(str(error))
+                continue
+            extra["skipped"] = skipped
+            return state, key_out, extra
+        raise CheckpointError(f"{manager.directory}: no checkpoint can be read: " + "; ".join(skipped))
+
+    def _restore_step(self, manager, step: int, template: TrainState, key: jax.Array):
+        where = f"{manager.directory}/{step}"
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, _state_tree(template, key, 0))
+        mismatch = self._config_mismatch(manager, step)
+        if mismatch:
+            raise CheckpointError(
+                f"{where}: written for another configuration than the run's config.json ({mismatch})", mismatch=True
+            )
         try:
             restored = manager.restore(
                 step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), extra=ocp.args.JsonRestore())
             )
-        except (ValueError, KeyError, TypeError) as error:
-            raise CheckpointError(
-                f"{manager.directory}/{step}: does not match the run's configuration ({error})"
-            ) from None
-        except Exception as error:  # tensorstore raises bare Exceptions for damaged array files
-            raise CheckpointError(
-                f"{manager.directory}/{step}: cannot be read, the checkpoint is damaged "
-                f"({type(error).__name__}: {str(error).splitlines()[0][:300]})"
-            ) from None
+        except Exception as error:  # orbax and tensorstore raise many types (bare Exception too) on damage
+            raise CheckpointError(f"{where}: cannot be read, the checkpoint is damaged ({_reason(error)})") from None
         tree, extra = restored["state"], restored["extra"]
         state = template.replace(params=tree["params"], opt_state=tree["opt_state"], step=tree["step"])
         return state, jax.random.wrap_key_data(np.asarray(tree["key"])), dict(extra)
+
+    def _config_mismatch(self, manager, step: int) -> str:
+        """The model fields in which checkpoint ``step``'s stored config differs from the run's ('' if none known)."""
+        mine = self.config.get("model")
+        if not isinstance(mine, Mapping):
+            return ""
+        try:
+            extra = manager.restore(step, args=ocp.args.Composite(extra=ocp.args.JsonRestore()))["extra"]
+            theirs = extra["config"]["model"]
+        except Exception:  # a damaged checkpoint: the full restore reports it
+            return ""
+        if not isinstance(theirs, Mapping):
+            return ""
+        ignored = {"kernels"}  # a speed setting, the same function
+        diff = [
+            f"{name}: checkpoint {theirs.get(name)!r}, config.json {mine.get(name)!r}"
+            for name in sorted(set(mine) | set(theirs))
+            if name not in ignored and theirs.get(name) != mine.get(name)
+        ]
+        return "; ".join(diff)
 
     def close(self) -> None:
         self._last.close()
