@@ -156,7 +156,7 @@ def test_simulate_batch_checks_only_real_particles():
 INITIAL_CASES = [
     ("radius too large for any particle", dict(radii_choices=[0.09]), ValueError, ["too large", "n_particles"]),
     ("tiny radius: millions of particles", dict(radii_choices=[1e-5]), ValueError, ["max_particles", "particles"]),
-    ("explicit count beyond the guard", dict(radii_choices=[3e-3], n_particles=200_000), ValueError, ["200,000"]),
+    ("explicit count beyond the guard", dict(radii_choices=[3e-3], n_particles=2_000_000), ValueError, ["2,000,000"]),
     ("zero count", dict(radii_choices=[3e-3], n_particles=0), ValueError, ["n_particles", ">= 1"]),
     ("nan radius", dict(radii_choices=[np.nan]), ValueError, ["radii_choices", "> 0"]),
     ("empty radii", dict(radii_choices=[]), ValueError, ["radii_choices"]),
@@ -204,7 +204,7 @@ def test_ctrl_c_stops_a_long_placement():
         from dispgns.physics import sample_initial_state
         print("start", flush=True)
         try:
-            sample_initial_state(jax.random.key(0), [3e-4], max_particles=10**6)
+            sample_initial_state(jax.random.key(0), [1e-4], max_particles=10**7)
         except KeyboardInterrupt:
             print("interrupted", flush=True)
             sys.exit(130)

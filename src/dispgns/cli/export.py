@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from dispgns.cli import CLIError
+from dispgns.cli._common import clean_leftovers, file_error
 
 
 def register(subparsers) -> None:
@@ -58,12 +59,13 @@ def run_lagrangebench(args: argparse.Namespace) -> int:
     from dispgns.data import DatasetError
     from dispgns.data.lagrangebench import UNSEEN_DIRECTORY, export_lagrangebench
 
+    clean_leftovers(args.out)
     try:
         result = export_lagrangebench(args.dataset, args.out, overwrite=args.overwrite)
-    except (FileExistsError, DatasetError) as error:
+    except DatasetError as error:
         raise CLIError(str(error)) from None
     except OSError as error:
-        raise CLIError(f"cannot export {args.dataset} to {args.out}: {error}") from None
+        raise file_error(error, args.out) from None
     main = result[""]
     print(
         f"wrote {args.out}: LagrangeBench dataset, splits "
@@ -83,6 +85,7 @@ def run_format(args: argparse.Namespace) -> int:
     from dispgns.data import DatasetError, read_metadata
     from dispgns.data.formats import export_trajectories
 
+    clean_leftovers(args.out)
     try:
         metadata = read_metadata(args.data) if args.data else None
         written = export_trajectories(
@@ -96,9 +99,9 @@ def run_format(args: argparse.Namespace) -> int:
             frame_dt=args.frame_dt,
             overwrite=args.overwrite,
         )
-    except (FileExistsError, DatasetError, ModuleNotFoundError) as error:
+    except (DatasetError, ModuleNotFoundError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:
-        raise CLIError(f"cannot export {args.source} to {args.out}: {error}") from None
+        raise file_error(error, args.out) from None
     print(f"wrote {args.out}: {len(written)} {args.format} file(s) (m, s), listed in {args.out}/export.json")
     return 0

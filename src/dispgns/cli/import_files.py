@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from dispgns.cli import CLIError
+from dispgns.cli._common import clean_leftovers, file_error
 
 _HELP = {
     "gsd": "GSD files (HOOMD-blue): positions, diameters, the centred box and dimensions from the file",
@@ -49,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.data import DatasetError
     from dispgns.data.formats import import_trajectory_files
 
+    clean_leftovers(args.out)
     try:
         metadata = import_trajectory_files(
             args.files,
@@ -62,10 +64,10 @@ def run(args: argparse.Namespace) -> int:
             dt=args.dt,
             overwrite=args.overwrite,
         )
-    except (FileExistsError, DatasetError, ValueError, ModuleNotFoundError) as error:
+    except (DatasetError, ValueError, ModuleNotFoundError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:
-        raise CLIError(f"cannot import into {args.out}: {error}") from None
+        raise file_error(error, args.out) from None
     counts = metadata.particle_counts[args.split]
     print(
         f"wrote {args.out} (split {args.split}): {len(counts)} trajectories, {metadata.sequence_length} frames, "
