@@ -411,7 +411,7 @@ def test_cli_generate_refuses_occupied_or_unwritable_targets(tmp_path, capsys, m
     blocker = tmp_path / "file"
     blocker.write_text("")
     assert main(["generate", "--preset", "tiny", "--out", str(blocker / "out")]) != 0
-    assert "cannot write the dataset" in capsys.readouterr().err
+    assert "cannot write to" in capsys.readouterr().err
     assert listing(tmp_path) == ["file", "occupied"]
 
 
