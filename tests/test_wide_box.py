@@ -129,3 +129,90 @@ def test_sampler_error_names_the_packing():
         sample_initial_state(jax.random.PRNGKey(0), [9e-3], WIDE, n_particles=500, max_rounds=4)
     with pytest.raises(ValueError, match="smallest box half-size"):
         sample_initial_state(jax.random.PRNGKey(0), [0.06], PhysicsConfig(box_half_size=(0.4, 0.05)))
+
+
+def _wide_metadata(**overrides):
+    from dispgns.data.format import DatasetMetadata, radii_groups
+
+    physics = PhysicsConfig(box_half_size=(0.4, 0.1), cutoff=0.02)
+    values = dict(
+        dim=2,
+        sequence_length=3,
+        frame_dt=15e-4,
+        save_every=15,
+        box_half_size=physics.box_half_size,
+        length_scale=0.1,
+        connectivity_radius=0.2,
+        trajectory_counts={"test": 1},
+        radii={"test": radii_groups([(1, [0.005])])},
+        physics=physics.to_dict(),
+    )
+    values.update(overrides)
+    return DatasetMetadata(**values)
+
+
+def test_dataset_metadata_separates_the_length_scale_from_the_box(tmp_path):
+    import json
+
+    from dispgns.data.format import DatasetError, DatasetMetadata, Trajectory, load_dataset, write_metadata, write_split
+
+    metadata = _wide_metadata()
+    assert metadata.bounds == ((-4.0, 4.0), (-1.0, 1.0)) and metadata.length_scale == 0.1
+    again = DatasetMetadata.from_dict(json.loads(json.dumps(metadata.to_dict())))
+    assert again == metadata and again.physics_config.box_half_size == (0.4, 0.1)
+    with pytest.raises(DatasetError, match="'bounds'"):
+        _wide_metadata(bounds=((-1.0, 1.0), (-1.0, 1.0)))
+    # A dataset written before the change (no length_scale; box_half_size = L) reads unchanged.
+    old = _wide_metadata(box_half_size=0.1, physics=PhysicsConfig().to_dict()).to_dict()
+    del old["length_scale"]
+    read = DatasetMetadata.from_dict(old)
+    assert read.length_scale == 0.1 and read.bounds == ((-1.0, 1.0), (-1.0, 1.0))
+    # Positions beyond 1 are valid in the wide box, and only there.
+    x0 = np.array([[0.35, -0.05], [-0.3, 0.02]])
+    position = np.repeat((x0 / 0.1).astype(np.float32)[None], 3, axis=0)
+    trajectory = Trajectory(
+        position=position,
+        radius=np.full(2, 0.05, np.float32),
+        particle_type=np.zeros(2, np.int32),
+        initial_position=x0,
+        initial_velocity=np.zeros((2, 2)),
+        initial_radius=np.full(2, 0.005),
+    )
+    with pytest.raises(DatasetError, match=r"expected inside the box \[-1, 1\]"):
+        write_split(tmp_path / "bad.h5", [trajectory], box_half_size=0.1)
+    write_split(tmp_path / "test.h5", [trajectory], box_half_size=0.1, bounds=metadata.bounds)
+    write_metadata(tmp_path, dataclasses.replace(metadata, particle_counts={"test": [2]}))
+    read_metadata, splits = load_dataset(tmp_path)
+    np.testing.assert_array_equal(splits["test"][0].position, position)
+    assert read_metadata.bounds == metadata.bounds
+
+
+def test_wide_preset_generates_a_dataset_in_the_wide_box(tmp_path):
+    from dispgns.data.format import load_dataset
+    from dispgns.data.generate import DatasetSpec, RadiiGroup, generate_dataset, preset
+
+    wide = preset("wide4")
+    assert wide.bounds == ((-4.0, 4.0), (-1.0, 1.0)) and wide.physics.half_sizes(2) == (0.4, 0.1)
+    assert preset("wide16").bounds == ((-16.0, 16.0), (-1.0, 1.0))
+    spec = DatasetSpec(
+        splits={"test": (RadiiGroup(1, (8e-3, 10e-3)),)},
+        n_frames=4,
+        physics=PhysicsConfig(box_half_size=(0.25, 0.05), cutoff=0.02),
+        length_scale=0.05,
+    )
+    metadata = generate_dataset(spec, tmp_path / "wide", seed=0)
+    assert metadata.bounds == ((-5.0, 5.0), (-1.0, 1.0)) and metadata.length_scale == 0.05
+    _, splits = load_dataset(tmp_path / "wide")
+    (trajectory,) = splits["test"]
+    np.testing.assert_allclose(trajectory.position[0], trajectory.initial_position / 0.05, atol=1e-5)
+    assert np.abs(trajectory.position[..., 0]).max() > 2.0  # the disks fill the whole width
+
+
+def test_wall_violations_use_the_wide_box():
+    from dispgns.metrics import wall_violations
+
+    positions = np.array([[[3.5, 0.0], [-3.96, 0.5], [4.2, 0.0]]], np.float32)
+    radius = np.full(3, 0.05, np.float32)
+    wide = ((-4.0, 4.0), (-1.0, 1.0))
+    assert int(wall_violations(positions, radius, bounds=wide)[0]) == 1  # only the disk beyond x = 4
+    assert int(wall_violations(positions, radius)[0]) == 3  # in the paper's box all three are outside

@@ -58,6 +58,7 @@ def chaos_floor_rollout(
     perturbation: float = 1e-6,
     mask=None,
     x64: bool = True,
+    length_scale: float | None = None,
     **simulate_kwargs,
 ) -> np.ndarray:
     """Re-run the ground truth from a slightly perturbed initial state.
@@ -94,7 +95,7 @@ def chaos_floor_rollout(
     """
     if isinstance(key, (int, np.integer)):
         key = jax.random.PRNGKey(int(key))
-    half = config.box_half_size
+    half = config.height if length_scale is None else length_scale
     with jax.enable_x64(x64):
         dtype = jnp.float64 if x64 else jnp.float32
         x0 = jnp.asarray(np.asarray(initial_position), dtype)
@@ -105,7 +106,7 @@ def chaos_floor_rollout(
                 f"expected initial_position (N, D), initial_velocity (N, D) and radius (N,), got "
                 f"{x0.shape}, {v0.shape} and {a.shape}"
             )
-        shifted = perturb_positions(key, x0, a, config, perturbation=perturbation, mask=mask)
+        shifted = perturb_positions(key, x0, a, config, perturbation=perturbation, mask=mask, length_scale=half)
         frames = simulate(
             shifted, v0, a, config, n_frames=n_frames, save_every=save_every, mask=mask, **simulate_kwargs
         )
@@ -113,7 +114,14 @@ def chaos_floor_rollout(
 
 
 def perturb_positions(
-    key, initial_position, radius, config: PhysicsConfig, *, perturbation: float = 1e-6, mask=None
+    key,
+    initial_position,
+    radius,
+    config: PhysicsConfig,
+    *,
+    perturbation: float = 1e-6,
+    mask=None,
+    length_scale: float | None = None,
 ) -> jnp.ndarray:
     """Initial centres shifted by independent normal draws of std ``perturbation * L`` (the chaos floor's start).
 
@@ -126,6 +134,9 @@ def perturb_positions(
       initial_position: ``(N, D)`` centres in m. radius: ``(N,)`` in m.
       perturbation: std in units of ``L`` (finite, >= 0).
       mask: optional ``(N,)`` bool; padding particles are not moved.
+      length_scale: ``L`` in m (``None``: the box's vertical half-size,
+        ``config.height``, the paper's ``L``). The walls are those of
+        ``config`` (one half-size per axis in a rectangular box).
 
     Returns:
       ``(N, D)`` shifted centres in m, in the dtype of ``initial_position``.
@@ -134,12 +145,13 @@ def perturb_positions(
         raise ValueError(f"perturbation must be a finite number >= 0 (units of L), got {perturbation!r}")
     x0 = jnp.asarray(initial_position)
     a = jnp.asarray(radius, x0.dtype)
-    half = config.box_half_size
-    noise = jax.random.normal(key, x0.shape, x0.dtype) * (perturbation * half)
+    scale = config.height if length_scale is None else length_scale
+    noise = jax.random.normal(key, x0.shape, x0.dtype) * (perturbation * scale)
     if mask is not None:
         noise = jnp.where(jnp.asarray(mask, bool)[:, None], noise, 0.0)
     shifted = x0 + noise
-    lower, upper = (-half + a)[:, None], (half - a)[:, None]
+    half = jnp.asarray(config.half_sizes(x0.shape[-1]), x0.dtype)
+    lower, upper = -half + a[:, None], half - a[:, None]
     shifted = jnp.where((shifted > upper) & (x0 <= upper), upper, shifted)
     return jnp.where((shifted < lower) & (x0 >= lower), lower, shifted)
 
@@ -245,6 +257,7 @@ def chaos_floor_trajectories(
     perturbation: float = CHAOS_PERTURBATION,
     x64: bool = False,
     compiler_options: Mapping[str, Any] | None = None,
+    length_scale: float | None = None,
 ) -> list[np.ndarray]:
     """The ground truth re-run from each trajectory's perturbed initial state, in one batched simulation.
 
@@ -266,7 +279,8 @@ def chaos_floor_trajectories(
     trajectories = list(trajectories)
     if not trajectories:
         return []
-    half = physics_config.box_half_size
+    # Positions are returned in units of L (default: the vertical half-size, the paper's L).
+    half = physics_config.height if length_scale is None else length_scale
     budget = max(t.initial_position.shape[0] for t in trajectories)
     dim = trajectories[0].initial_position.shape[1]
     with jax.enable_x64(x64):
@@ -284,6 +298,7 @@ def chaos_floor_trajectories(
                 jnp.asarray(traj.initial_radius, dtype),
                 physics_config,
                 perturbation=perturbation,
+                length_scale=half,
             )
             x0[k, :n] = np.asarray(shifted)
             v0[k, :n] = traj.initial_velocity
@@ -321,6 +336,7 @@ def evaluate_trajectories(
     compiler_options: Mapping[str, Any] | None = None,
     physics_compiler_options: Mapping[str, Any] | None = None,
     mesh: jax.sharding.Mesh | None = None,
+    bounds=None,
 ) -> dict[str, Any]:
     """Roll out and score every trajectory of a split.
 
@@ -328,7 +344,8 @@ def evaluate_trajectories(
       params, model_config: the model.
       trajectories: the split (normalised positions; the initial state is
         used for the chaos floor when every trajectory has one).
-      box_half_size: ``L`` in m. frame_dt: s between frames.
+      box_half_size: the length scale ``L`` in m positions are divided by
+        (the dataset's ``length_scale``). frame_dt: s between frames.
       physics_config: the dataset's physics (needed for the chaos floor and
         the kinetic energy; default :class:`PhysicsConfig`).
       save_every: Euler steps between frames of the dataset.
@@ -346,6 +363,8 @@ def evaluate_trajectories(
         process ``p`` of ``P`` computes trajectories ``p, p + P, ...`` and the
         results are gathered (``jax.experimental.multihost_utils``), so every
         process returns the whole split.
+      bounds: the dataset's box in normalised units, for the wall
+        violations (``None``: ``model_config.bounds``).
 
     Returns:
       ``{"predictions": [(T, N, D), ...], "metrics": [rollout_metrics dict,
@@ -376,6 +395,7 @@ def evaluate_trajectories(
             save_every=save_every,
             x64=chaos_x64,
             compiler_options=physics_compiler_options,
+            length_scale=box_half_size,
         )
         report("chaos", len(mine))
     predictions = _from_every_process(predictions, trajectories, frames)
@@ -392,6 +412,7 @@ def evaluate_trajectories(
                 frame_dt=frame_dt,
                 chaos_floor=None if floor is None else np.asarray(floor, np.float32),
                 physics_config=physics_config,
+                bounds=model_config.bounds if bounds is None else bounds,
             )
         )
     return {"predictions": predictions, "metrics": metrics, "summary": summarize(metrics), "chaos_floor": with_chaos}

@@ -255,7 +255,7 @@ def mse_times_L_mm(mse, box_half_size: float):
 # ----------------------------------------------------------------------------
 
 
-def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None) -> jnp.ndarray:
+def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None, bounds=None) -> jnp.ndarray:
     """Particles poking through a wall, per frame.
 
     A particle is outside when on some axis its centre lies beyond its wall
@@ -267,6 +267,8 @@ def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None) -> 
       positions: ``(T, N, D)`` normalised. radius: ``(N,)`` normalised.
       tolerance: allowed penetration as a fraction of the radius (0.1 = 10 %).
       mask: optional ``(N,)`` bool; padding never counts.
+      bounds: static box ``((lo, hi),) * D`` in normalised units (``None``:
+        ``[-1, 1]^D``); the walls are then at ``lo_d`` and ``hi_d``.
 
     Returns:
       ``(T,)`` int32: number of real particles outside the box in each frame
@@ -275,8 +277,14 @@ def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None) -> 
     positions = _as_trajectory("positions", positions)
     _, n, _ = positions.shape
     radius = _as_radius(radius, n, positions.dtype)
-    limit = 1.0 - radius + tolerance * radius
-    outside = jnp.any(jnp.abs(positions) > limit[None, :, None], axis=-1)
+    if bounds is None or all(tuple(pair) == (-1.0, 1.0) for pair in bounds):
+        limit = 1.0 - radius + tolerance * radius
+        outside = jnp.any(jnp.abs(positions) > limit[None, :, None], axis=-1)
+    else:
+        box = np.asarray(bounds, np.float64)
+        lo, hi = jnp.asarray(box[:, 0], positions.dtype), jnp.asarray(box[:, 1], positions.dtype)
+        slack = (radius - tolerance * radius)[None, :, None]
+        outside = jnp.any((positions < lo + slack) | (positions > hi - slack), axis=-1)
     if mask is not None:
         outside = outside & _weights(mask, n, bool)[None, :]
     return jnp.sum(outside, axis=-1, dtype=jnp.int32)
@@ -651,6 +659,7 @@ def _metric_arrays(
     wall_tolerance,
     overlap_coeff,
     config,
+    bounds=None,
 ):
     """Every per-frame array of :func:`rollout_metrics`, in one XLA program."""
     c = input_frames
@@ -659,8 +668,8 @@ def _metric_arrays(
     out = {
         "curve": per_frame_mse(prediction, truth, input_frames=c, mask=mask),
         "constant_velocity_curve": per_frame_mse(baseline, truth, input_frames=c, mask=mask),
-        "walls": wall_violations(prediction[c:], radius, tolerance=wall_tolerance, mask=mask),
-        "walls_truth": wall_violations(truth[c:], radius, tolerance=wall_tolerance, mask=mask),
+        "walls": wall_violations(prediction[c:], radius, tolerance=wall_tolerance, mask=mask, bounds=bounds),
+        "walls_truth": wall_violations(truth[c:], radius, tolerance=wall_tolerance, mask=mask, bounds=bounds),
         "overlaps": overlap_counts(prediction[c:], radius, coeff=overlap_coeff, mask=mask),
         "overlaps_truth": overlap_counts(truth[c:], radius, coeff=overlap_coeff, mask=mask),
         # kinetic_energy's entry k - 1 is frame k: keep frames c .. T-1.
@@ -678,7 +687,15 @@ def _metric_arrays(
 
 _metric_arrays_jit = jax.jit(
     _metric_arrays,
-    static_argnames=("input_frames", "box_half_size", "frame_dt", "wall_tolerance", "overlap_coeff", "config"),
+    static_argnames=(
+        "input_frames",
+        "box_half_size",
+        "frame_dt",
+        "wall_tolerance",
+        "overlap_coeff",
+        "config",
+        "bounds",
+    ),
 )
 
 
@@ -711,6 +728,7 @@ def rollout_metrics(
     overlap_coeff: float = 1.75,
     chaos_floor=None,
     physics_config: PhysicsConfig | None = None,
+    bounds=None,
 ) -> dict[str, Any]:
     """Every metric of one rollout, as a JSON-ready dict.
 
@@ -727,6 +745,8 @@ def rollout_metrics(
       overlap_coeff: see :func:`overlap_counts`.
       chaos_floor: optional ``(T, N, D)`` normalised trajectory from
         :func:`dispgns.evaluation.chaos_floor_rollout`; adds the ``chaos_floor_*`` entries.
+      bounds: the box ``((lo, hi),) * D`` in normalised units for the wall
+        violations (``None``: ``[-1, 1]^D``, the paper's box).
       physics_config: masses for the kinetic energy (default
         :class:`PhysicsConfig`; only ``thickness`` and ``density`` matter).
 
@@ -800,6 +820,7 @@ def rollout_metrics(
         wall_tolerance=float(wall_tolerance),
         overlap_coeff=float(overlap_coeff),
         config=PhysicsConfig() if physics_config is None else physics_config,
+        bounds=None if bounds is None else tuple(tuple(float(v) for v in pair) for pair in bounds),
     )
     arrays = jax.device_get(arrays)
     mean_diameter = float(arrays["mean_diameter"])

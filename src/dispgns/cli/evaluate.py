@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -79,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError(
             f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim {model_config.dim}"
         )
+    if tuple(map(tuple, metadata.bounds)) != model_config.bounds:
+        # The network is local (wall distances are clipped): the same parameters roll out in
+        # any box; the box is the dataset's, so that the wall features see its walls.
+        model_config = dataclasses.replace(model_config, bounds=tuple(map(tuple, metadata.bounds)))
     c = model_config.input_sequence_length
     if args.frames is not None and not c < args.frames <= metadata.sequence_length:
         raise CLIError(f"--frames {args.frames}: expected C = {c} < T <= {metadata.sequence_length}")
@@ -152,8 +157,9 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
                 params,
                 trajectories,
                 model_config=model_config,
-                box_half_size=metadata.box_half_size,
+                box_half_size=metadata.length_scale,
                 frame_dt=metadata.frame_dt,
+                bounds=metadata.bounds,
                 physics_config=metadata.physics_config,
                 save_every=metadata.save_every,
                 chaos_floor=chaos,
@@ -175,7 +181,7 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
             )
             for k, (p, t) in enumerate(zip(result["predictions"], trajectories))
         ]
-        write_split(out / "predictions" / split_filename(split), predicted, predicted=True)
+        write_split(out / "predictions" / split_filename(split), predicted, predicted=True, bounds=metadata.bounds)
         plot_rollout_errors(
             result["summary"],
             frame_dt=metadata.frame_dt,

@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.start < frames or (args.stop is not None and not args.start < args.stop <= frames):
         raise CLIError(f"--start/--stop: expected 0 <= start < stop <= {frames}")
     out = Path(args.out)
-    common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.box_half_size)
+    common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.length_scale)
     with output_directory(out, overwrite=args.overwrite, marker=RENDER_FILE, kind="render") as staging:
         files = save_rollout_animation(
             str(staging / "rollout"),

@@ -344,10 +344,9 @@ def run(args: argparse.Namespace) -> int:
             f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, but the model has dim = {model_config.dim}"
         )
     if tuple(map(tuple, metadata.bounds)) != model_config.bounds:
-        raise CLIError(
-            f"{Path(args.data) / 'metadata.json'}: 'bounds' is {metadata.bounds}, but the model has "
-            f"bounds = {model_config.bounds}"
-        )
+        # The box belongs to the data: the network is local and its parameters do not depend on it
+        # (a model trained in one box rolls out in another with that box's bounds).
+        model_config = dataclasses.replace(model_config, bounds=tuple(map(tuple, metadata.bounds)))
     # Saved and exported: model_config; computed with: its CPU kernels unless --no-tuning (same function).
     compute = compute_config(args, model_config)
     parallel = _data_parallel(args, train_config.batch_size)
@@ -367,6 +366,7 @@ def run(args: argparse.Namespace) -> int:
         "trajectory_counts": dict(metadata.trajectory_counts),
         "frame_dt": metadata.frame_dt,
         "box_half_size": metadata.box_half_size,
+        "length_scale": metadata.length_scale,
     }
     config = run_config(model_config, train_config, normalization, dataset_info)
     init_key, key = jax.random.split(jax.random.key(train_config.seed))

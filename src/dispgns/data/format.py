@@ -7,13 +7,20 @@ group per trajectory, named ``00000``, ``00001``, ..., holding:
 ============================ =========== ======= ===============================
 dataset                      shape       dtype   content
 ============================ =========== ======= ===============================
-``position``                 (T, N, D)   float32 centres / L (box ``[-1, 1]^D``)
+``position``                 (T, N, D)   float32 centres / L (box ``bounds``)
 ``radius``                   (N,)        float32 radii / L
 ``particle_type``            (N,)        int     0 = particle, -1 = padding (see below)
 ``initial_position``         (N, D)      float64 centres in m the physics started from
 ``initial_velocity``         (N, D)      float64 velocities in m/s it started from
 ``initial_radius``           (N,)        float64 radii in m it ran with
 ============================ =========== ======= ===============================
+
+``L`` is the dataset's length scale (``metadata.json`` ``length_scale``, the
+paper's 0.1 m) and ``bounds`` the box in those units, one ``(lo, hi)`` per
+axis: ``[-1, 1]^D`` for the paper's square box of half-size ``L``,
+``((-4, 4), (-1, 1))`` for a container of half-sizes ``(0.4, 0.1)`` m.
+Datasets written before the two were separated hold neither key: there
+``L = box_half_size`` and ``bounds = [-1, 1]^D``.
 
 The three ``initial_*`` datasets are present together or not at all (imported
 data has no initial state, so it cannot be re-run). Group attributes carry
@@ -211,6 +218,7 @@ def validate_trajectory(
     n_frames: int | None = None,
     box_half_size: float | None = None,
     predicted: bool = False,
+    bounds: Sequence[Sequence[float]] | None = None,
 ) -> None:
     """Check every field of ``trajectory``; raise :class:`DatasetError` prefixed with ``where``.
 
@@ -218,11 +226,13 @@ def validate_trajectory(
       trajectory: the trajectory to check.
       where: the location used in messages, e.g. ``"train.h5: trajectory 00003"``.
       dim, n_frames: expected ``D`` and ``T`` (``None``: not checked).
-      box_half_size: L in m, to check that the initial state lies in the box
-        and agrees with ``position[0]`` (``None``: not checked).
+      box_half_size: the length scale L in m the positions are divided by,
+        to check that the initial state lies in the box and agrees with
+        ``position[0]`` (``None``: not checked).
       predicted: the positions are a model's prediction (a rollout written
         by ``dispgns evaluate``): they may leave the box or diverge to
         non-finite values, which are then stored as they are.
+      bounds: the box ``((lo, hi),) * D`` in units of L (``None``: ``[-1, 1]^D``).
     """
     position = _check_array(
         where, "position", trajectory.position, (n_frames, None, dim), "any" if predicted else "float", np.float32
@@ -230,18 +240,25 @@ def validate_trajectory(
     t, n, d = position.shape
     if t < 1 or n < 1 or d < 1:
         _fail(where, f"'position' has shape {position.shape}, expected at least one frame, particle and axis")
-    outside = np.abs(position) > 1.0 + BOX_TOLERANCE
+    box = np.array([[-1.0, 1.0]] * d if bounds is None else bounds, np.float64)
+    if box.shape != (d, 2):
+        _fail(where, f"'position' has {d} axes, expected {box.shape[0]} (the box {box.tolist()})")
+    lo, hi = box[:, 0], box[:, 1]
+    # The tolerance is relative to the box's scale (1 for [-1, 1]).
+    tolerance = BOX_TOLERANCE * np.maximum(np.abs(lo), np.abs(hi))
+    outside = (position < lo - tolerance) | (position > hi + tolerance)
     if outside.any() and not predicted:
         frame, particle, axis = (int(i) for i in np.argwhere(outside)[0])
         _fail(
             where,
             f"'position' frame {frame} particle {particle} axis {axis} is "
-            f"{position[frame, particle, axis]:.6g}, expected inside the box [-1, 1]",
+            f"{position[frame, particle, axis]:.6g}, expected inside the box [{lo[axis]:g}, {hi[axis]:g}]",
         )
     radius = _check_array(where, "radius", trajectory.radius, (n,), "float", np.float32)
-    if not np.all((radius > 0) & (radius < 1)):
-        bad = int(np.argmax(~((radius > 0) & (radius < 1))))
-        _fail(where, f"'radius' of particle {bad} is {radius[bad]:.6g}, expected 0 < radius / L < 1")
+    largest = float(np.min(hi - lo)) / 2.0
+    if not np.all((radius > 0) & (radius < largest)):
+        bad = int(np.argmax(~((radius > 0) & (radius < largest))))
+        _fail(where, f"'radius' of particle {bad} is {radius[bad]:.6g}, expected 0 < radius / L < {largest:g}")
     _check_array(where, "particle_type", trajectory.particle_type, (n,), "int")
     present = [name for name in _INITIAL_FIELDS if getattr(trajectory, name) is not None]
     if present and len(present) != len(_INITIAL_FIELDS):
@@ -257,12 +274,13 @@ def validate_trajectory(
         _fail(where, f"'initial_radius' of particle {bad} is {a0[bad]:.6g} m, expected > 0")
     if box_half_size is not None:
         scaled = x0 / box_half_size
-        if np.any(np.abs(scaled) > 1.0 + BOX_TOLERANCE):
-            particle, axis = (int(i) for i in np.argwhere(np.abs(scaled) > 1.0 + BOX_TOLERANCE)[0])
+        outside = (scaled < lo - tolerance) | (scaled > hi + tolerance)
+        if np.any(outside):
+            particle, axis = (int(i) for i in np.argwhere(outside)[0])
             _fail(
                 where,
                 f"'initial_position' particle {particle} axis {axis} is {x0[particle, axis]:.6g} m, "
-                f"expected inside the box [-{box_half_size}, {box_half_size}] m",
+                f"expected inside the box [{lo[axis] * box_half_size:g}, {hi[axis] * box_half_size:g}] m",
             )
         gap = np.abs(scaled - position[0])
         if np.any(gap > INITIAL_STATE_TOLERANCE):
@@ -294,9 +312,13 @@ class DatasetMetadata:
       sequence_length: frames per trajectory T.
       frame_dt: time between stored frames in s (``save_every * physics.dt``).
       save_every: Euler steps between stored frames.
-      box_half_size: L in m; stored positions and radii are divided by it.
+      box_half_size: the physics box's half-size in m (``physics.box_half_size``):
+        a float for the paper's square box, one per axis for a rectangular one.
       connectivity_radius: default graph radius in normalised units
         (4 x the largest training radius / L; 0.2 for the paper).
+      length_scale: ``L`` in m; stored positions and radii are divided by it
+        (``None`` when read: ``box_half_size``, the only length of datasets
+        written before rectangular boxes; always written).
       trajectory_counts: trajectories per split, e.g. ``{"train": 16, ...}``.
       radii: per split, the radii groups the trajectories were drawn from:
         a list of ``{"count", "radii_m", "radii_mm"}`` mappings.
@@ -313,7 +335,8 @@ class DatasetMetadata:
       preset: the preset name the dataset was generated from, if any.
       particle_counts: per split, the particle count N of every trajectory
         (``None``: not recorded).
-      bounds: ``((-1, 1),) * D``, the normalised box.
+      bounds: the box in units of L, ``((-h_d / L, h_d / L) for each axis d)``
+        (``None``: computed; ``((-1, 1),) * D`` for the paper's box).
       batch_size: the most trajectories simulated together when generating
         (``None``: no limit, or not recorded). In float32 the grouping changes
         the rounding of the chaotic dynamics, so reproducing the files needs
@@ -340,7 +363,7 @@ class DatasetMetadata:
     sequence_length: int
     frame_dt: float
     save_every: int
-    box_half_size: float
+    box_half_size: float | tuple[float, ...]
     connectivity_radius: float
     trajectory_counts: Mapping[str, int]
     radii: Mapping[str, Sequence[Mapping[str, Any]]]
@@ -362,11 +385,18 @@ class DatasetMetadata:
     acc_std: tuple[float, ...] | None = None
     position_offset: tuple[float, ...] | None = None
     dispgns_version: str | None = None
+    length_scale: float | None = None
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self):
+        half = self.box_half_size
+        if isinstance(half, list | tuple):
+            half = tuple(float(v) if isinstance(v, int | float) and not isinstance(v, bool) else v for v in half)
+            object.__setattr__(self, "box_half_size", half)
+        if self.length_scale is None:
+            object.__setattr__(self, "length_scale", half[-1] if isinstance(half, tuple) and half else half)
         if self.bounds is None:
-            object.__setattr__(self, "bounds", tuple((-1.0, 1.0) for _ in range(self.dim)))
+            object.__setattr__(self, "bounds", self.expected_bounds())
         else:
             object.__setattr__(self, "bounds", tuple(tuple(float(v) for v in pair) for pair in self.bounds))
         for name in _STAT_KEYS + ("position_offset",):
@@ -378,6 +408,17 @@ class DatasetMetadata:
 
             object.__setattr__(self, "dispgns_version", __version__)
         self.validate()
+
+    def expected_bounds(self) -> tuple[tuple[float, float], ...]:
+        """The box in units of L from ``box_half_size`` and ``length_scale`` (12 significant digits)."""
+        half = self.box_half_size
+        sizes = half if isinstance(half, tuple) else (half,) * self.dim
+        try:
+            return tuple(
+                (-float(f"{h / self.length_scale:.12g}"), float(f"{h / self.length_scale:.12g}")) for h in sizes
+            )
+        except (TypeError, ValueError, ZeroDivisionError):
+            return tuple((-1.0, 1.0) for _ in range(self.dim))
 
     @property
     def physics_config(self) -> PhysicsConfig:
@@ -405,20 +446,36 @@ class DatasetMetadata:
             isinstance(self.save_every, int) and self.save_every >= 1,
             f"'save_every' is {self.save_every!r}, expected an integer >= 1",
         )
-        for name in ("frame_dt", "box_half_size", "connectivity_radius"):
+        for name in ("frame_dt", "length_scale", "connectivity_radius"):
             value = getattr(self, name)
             need(
-                isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+                isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0,
                 f"'{name}' is {value!r}, expected a finite number > 0",
             )
+        half = self.box_half_size
+        sizes = half if isinstance(half, tuple) else (half,)
+        need(
+            len(sizes) in (1, self.dim)
+            and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in sizes
+            ),
+            f"'box_half_size' is {half!r}, expected a finite number > 0 (m) or {self.dim} of them",
+        )
         need(
             self.format_version == FORMAT_VERSION,
             f"'format_version' is {self.format_version!r}, expected {FORMAT_VERSION} (this dispgns reads "
             f"format {FORMAT_VERSION} only)",
         )
+        expected_bounds = self.expected_bounds()
         need(
-            self.bounds == tuple((-1.0, 1.0) for _ in range(self.dim)),
-            f"'bounds' is {self.bounds!r}, expected {[[-1.0, 1.0]] * self.dim}",
+            len(self.bounds) == self.dim
+            and all(
+                math.isclose(a, b, rel_tol=1e-9)
+                for pair, want in zip(self.bounds, expected_bounds)
+                for a, b in zip(pair, want)
+            ),
+            f"'bounds' is {[list(b) for b in self.bounds]!r}, expected {[list(b) for b in expected_bounds]} "
+            f"(box_half_size / length_scale)",
         )
         need(
             isinstance(self.trajectory_counts, Mapping) and len(self.trajectory_counts) > 0,
@@ -531,8 +588,15 @@ class DatasetMetadata:
             config = self.physics_config
         except (TypeError, ValueError) as error:
             _fail(where, f"'physics' is not a valid PhysicsConfig: {error}")
+        physics_sizes = _half_sizes_of(config, self.dim)
+        own_sizes = sizes * self.dim if len(sizes) == 1 else sizes
+        same_box = (
+            physics_sizes is not None
+            and len(own_sizes) == self.dim
+            and all(math.isclose(a, b, rel_tol=1e-12) for a, b in zip(physics_sizes, own_sizes))
+        )
         need(
-            math.isclose(config.box_half_size, self.box_half_size, rel_tol=1e-12),
+            same_box,
             f"'box_half_size' is {self.box_half_size}, expected physics.box_half_size = {config.box_half_size}",
         )
         need(
@@ -554,7 +618,8 @@ class DatasetMetadata:
             "dim": self.dim,
             "bounds": [[lo + o, hi + o] for (lo, hi), o in zip(self.bounds, self.position_offset or [0.0] * self.dim)],
             "position_offset": None if self.position_offset is None else list(self.position_offset),
-            "box_half_size": self.box_half_size,
+            "box_half_size": list(self.box_half_size) if isinstance(self.box_half_size, tuple) else self.box_half_size,
+            "length_scale": self.length_scale,
             "frame_dt": self.frame_dt,
             "save_every": self.save_every,
             "sequence_length": self.sequence_length,
@@ -601,7 +666,7 @@ class DatasetMetadata:
         keys: dict[str, Any] = {
             "dt": self.physics_config.dt,
             "write_every": self.save_every,
-            "dx": float(f"{2.0 * float(np.mean(radii)) / self.box_half_size:.12g}"),
+            "dx": float(f"{2.0 * float(np.mean(radii)) / self.length_scale:.12g}"),
             "default_connectivity_radius": self.connectivity_radius,
             "periodic_boundary_conditions": [False] * self.dim,
         }
@@ -675,6 +740,13 @@ class DatasetMetadata:
         return expected
 
 
+def _half_sizes_of(config: PhysicsConfig, dim: int) -> tuple[float, ...] | None:
+    try:
+        return config.half_sizes(dim)
+    except ValueError:
+        return None
+
+
 def _is_int(value) -> bool:
     """An integer in JSON terms (``true`` is not a count)."""
     return isinstance(value, int) and not isinstance(value, bool)
@@ -697,6 +769,7 @@ def write_split(
     *,
     box_half_size: float | None = None,
     predicted: bool = False,
+    bounds: Sequence[Sequence[float]] | None = None,
 ) -> Path:
     """Validate and write one split file atomically.
 
@@ -709,8 +782,10 @@ def write_split(
     Args:
       path: target ``.h5`` file.
       trajectories: the trajectories, stored as groups ``00000``, ``00001``, ...
-      box_half_size: L in m, to also check each initial state against its
-        normalised positions (recommended).
+      box_half_size: the length scale L in m, to also check each initial
+        state against its normalised positions (recommended).
+      bounds: the box in units of L (``None``: ``[-1, 1]^D``); stored as the
+        file attribute ``bounds`` when given.
       predicted: the positions are a model's rollout (see
         :func:`validate_trajectory`); the file attribute ``predicted`` is set.
 
@@ -729,9 +804,12 @@ def write_split(
             dim=dim,
             box_half_size=box_half_size,
             predicted=predicted,
+            bounds=bounds,
         )
     with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
         file.attrs["format_version"] = FORMAT_VERSION
+        if bounds is not None:
+            file.attrs["bounds"] = np.asarray(bounds, np.float64)
         if predicted:
             file.attrs["predicted"] = True
         for index, trajectory in enumerate(trajectories):
@@ -831,6 +909,9 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
             _fail(name, "holds no trajectories, expected at least one")
         dim = expected.get("dim")
         n_frames = expected.get("n_frames")
+        # The box: from metadata.json, else from the file (written since rectangular boxes), else [-1, 1]^D.
+        bounds = metadata.bounds if metadata is not None else file.attrs.get("bounds")
+        bounds = None if bounds is None else np.asarray(bounds, np.float64)
         for index, group_name in enumerate(groups):
             where = f"{name}: trajectory {group_name}"
             if group_name != trajectory_name(index):
@@ -871,8 +952,9 @@ def _read_trajectories(file, name: str, expected: dict, metadata) -> list[Trajec
                 where,
                 dim=dim,
                 n_frames=n_frames,
-                box_half_size=None if metadata is None else metadata.box_half_size,
+                box_half_size=None if metadata is None else metadata.length_scale,
                 predicted=predicted,
+                bounds=bounds,
             )
             if "particles" in expected and trajectory.n_particles != expected["particles"][index]:
                 _fail(

@@ -112,6 +112,10 @@ class DatasetSpec:
       precision: ``"float32"`` (default, fast) or ``"float64"`` (needs
         ``jax_enable_x64``).
       name: the preset name, recorded in the metadata.
+      length_scale: ``L`` in m, the length positions and radii are divided
+        by (``None``: the box's vertical half-size, the paper's 0.1 m). The
+        box is then ``bounds = ((-h_d / L, h_d / L) for each axis)`` in the
+        stored units.
     """
 
     splits: Mapping[str, tuple[RadiiGroup, ...]]
@@ -121,6 +125,7 @@ class DatasetSpec:
     dim: int = 2
     precision: str = "float32"
     name: str | None = None
+    length_scale: float | None = None
 
     def __post_init__(self):
         unknown = sorted(set(self.splits) - set(SPLITS))
@@ -146,14 +151,27 @@ class DatasetSpec:
             raise ValueError(f"dim must be 2 or 3, got {self.dim!r}")
         if self.precision not in ("float32", "float64"):
             raise ValueError(f"precision must be 'float32' or 'float64', got {self.precision!r}")
-        half = self.physics.box_half_size
+        half = min(self.physics.half_sizes(self.dim))
         for split, groups in splits.items():
             for group in groups:
                 if max(group.radii_m) >= half / 2:
                     raise ValueError(
                         f"{split}: radius {max(group.radii_m)} m does not fit the box: expected "
-                        f"radii below L/2 = {half / 2} m"
+                        f"radii below half the smallest box half-size, {half / 2} m"
                     )
+        if self.length_scale is None:
+            object.__setattr__(self, "length_scale", self.physics.height)
+        elif not (
+            isinstance(self.length_scale, int | float) and math.isfinite(self.length_scale) and self.length_scale > 0
+        ):
+            raise ValueError(f"length_scale must be a length > 0 in m or None, got {self.length_scale!r}")
+        object.__setattr__(self, "length_scale", float(self.length_scale))
+
+    @property
+    def bounds(self) -> tuple[tuple[float, float], ...]:
+        """The box in units of ``length_scale``, one ``(lo, hi)`` per axis."""
+        scale = lambda h: float(f"{h / self.length_scale:.12g}")
+        return tuple((-scale(h), scale(h)) for h in self.physics.half_sizes(self.dim))
 
     @property
     def counts(self) -> dict[str, int]:
@@ -169,7 +187,7 @@ class DatasetSpec:
         """4 x the largest training radius / L (every radius if there is no train split)."""
         groups = self.splits.get("train") or [g for gs in self.splits.values() for g in gs]
         largest = max(max(g.radii_m) for g in groups)
-        return float(f"{4.0 * largest / self.physics.box_half_size:.12g}")
+        return float(f"{4.0 * largest / self.length_scale:.12g}")
 
     def items(self) -> list[tuple[str, int, tuple[float, ...]]]:
         """``(split, index, radii_m)`` of every trajectory, in storage order."""
@@ -280,11 +298,52 @@ def tiny_spec() -> DatasetSpec:
     )
 
 
-PRESETS: dict[str, Callable[[], DatasetSpec]] = {"paper": paper_spec, "tiny": tiny_spec}
+def wide_spec(factor: int) -> DatasetSpec:
+    """The paper's protocol in a container ``factor`` times wider than the paper's box, same height.
+
+    Box half-sizes ``(0.1 factor, 0.1)`` m, positions in units of the paper's
+    ``L = 0.1`` m (``bounds = ((-factor, factor), (-1, 1))``), the paper's
+    radii lists and 500 frames; a handful of trajectories per split (4 train,
+    2 valid, 4 test, 2 + 2 unseen-radii test), about ``150 factor`` disks each.
+    The physics uses a 20 mm cut-off (4 largest radii: the LJ force there is
+    under 1 % of its value at contact) with cell lists, so its cost grows
+    linearly with the width.
+    """
+    return DatasetSpec(
+        splits={
+            "train": (RadiiGroup(4, PAPER_TRAIN_RADII_M),),
+            "valid": (RadiiGroup(2, PAPER_TRAIN_RADII_M),),
+            "test": (RadiiGroup(4, PAPER_TRAIN_RADII_M),),
+            "test_unseen": (RadiiGroup(2, _mm(2.75, 4.25)), RadiiGroup(2, _mm(2.25, 3.25, 3.75, 4.75))),
+        },
+        n_frames=500,
+        save_every=15,
+        physics=PhysicsConfig(box_half_size=(0.1 * factor, 0.1), cutoff=0.02),
+        name=f"wide{factor}",
+        length_scale=0.1,
+    )
+
+
+def wide4_spec() -> DatasetSpec:
+    """:func:`wide_spec` 4: a box 0.8 m wide, 0.2 m tall, ~600 disks per trajectory."""
+    return wide_spec(4)
+
+
+def wide16_spec() -> DatasetSpec:
+    """:func:`wide_spec` 16: a box 3.2 m wide, 0.2 m tall, ~2,400 disks per trajectory."""
+    return wide_spec(16)
+
+
+PRESETS: dict[str, Callable[[], DatasetSpec]] = {
+    "paper": paper_spec,
+    "tiny": tiny_spec,
+    "wide4": wide4_spec,
+    "wide16": wide16_spec,
+}
 
 
 def preset(name: str) -> DatasetSpec:
-    """The named preset spec (``"paper"`` or ``"tiny"``)."""
+    """The named preset spec (``"paper"``, ``"tiny"``, ``"wide4"`` or ``"wide16"``)."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}, expected one of {sorted(PRESETS)}")
     return PRESETS[name]()
@@ -656,7 +715,7 @@ def generate_dataset(
     if batch_size is not None and batch_size < 1:
         raise ValueError(f"batch_size must be >= 1 or None, got {batch_size!r}")
     config = spec.physics
-    half = config.box_half_size
+    half = spec.length_scale  # positions and radii are stored in units of it
     items = spec.items()
     total = len(items)
     report = progress or (lambda stage, done, total: None)
@@ -708,13 +767,15 @@ def generate_dataset(
                 )
             )
         for split, group in trajectories.items():
-            write_split(staging / split_filename(split), group, box_half_size=half)
+            write_split(staging / split_filename(split), group, box_half_size=half, bounds=spec.bounds)
         metadata = DatasetMetadata(
             dim=spec.dim,
             sequence_length=spec.n_frames,
             frame_dt=spec.save_every * config.dt,
             save_every=spec.save_every,
-            box_half_size=half,
+            box_half_size=config.box_half_size,
+            length_scale=half,
+            bounds=spec.bounds,
             connectivity_radius=spec.connectivity_radius,
             trajectory_counts=spec.counts,
             radii={split: radii_groups((g.count, g.radii_m) for g in groups) for split, groups in spec.splits.items()},

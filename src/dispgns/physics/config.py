@@ -148,7 +148,11 @@ class PhysicsConfig:
         return (self.density - self.fluid_density) * math.pi * radius * self.thickness * self.gravity / self.drag
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The fields as JSON values (a per-axis ``box_half_size`` as a list)."""
+        values = dataclasses.asdict(self)
+        if isinstance(self.box_half_size, tuple):
+            values["box_half_size"] = list(self.box_half_size)
+        return values
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> PhysicsConfig:
