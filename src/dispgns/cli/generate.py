@@ -26,7 +26,7 @@ def register(subparsers) -> None:
         default="paper",
         help="paper: the paper's 40 trajectories of 500 frames (default); tiny: 5 small "
         "trajectories for tests and demos; wide4, wide16: containers 4x and 16x wider than the paper's "
-        "box (same height, its radii lists, 12 trajectories, ~600 and ~2,400 disks)",
+        "box (same height, its radii lists, 14 trajectories of ~600-900 and ~2,400-3,600 disks)",
     )
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset directory to create")
     parser.add_argument(

@@ -304,7 +304,7 @@ def wide_spec(factor: int) -> DatasetSpec:
     Box half-sizes ``(0.1 factor, 0.1)`` m, positions in units of the paper's
     ``L = 0.1`` m (``bounds = ((-factor, factor), (-1, 1))``), the paper's
     radii lists and 500 frames; a handful of trajectories per split (4 train,
-    2 valid, 4 test, 2 + 2 unseen-radii test), about ``150 factor`` disks each.
+    2 valid, 4 test, 2 + 2 unseen-radii test), 150-225 x ``factor`` disks each.
     The physics uses a 20 mm cut-off (4 largest radii: the LJ force there is
     under 1 % of its value at contact) with cell lists, so its cost grows
     linearly with the width.
@@ -325,12 +325,12 @@ def wide_spec(factor: int) -> DatasetSpec:
 
 
 def wide4_spec() -> DatasetSpec:
-    """:func:`wide_spec` 4: a box 0.8 m wide, 0.2 m tall, ~600 disks per trajectory."""
+    """:func:`wide_spec` 4: a box 0.8 m wide, 0.2 m tall, ~600-900 disks per trajectory."""
     return wide_spec(4)
 
 
 def wide16_spec() -> DatasetSpec:
-    """:func:`wide_spec` 16: a box 3.2 m wide, 0.2 m tall, ~2,400 disks per trajectory."""
+    """:func:`wide_spec` 16: a box 3.2 m wide, 0.2 m tall, ~2,400-3,600 disks per trajectory."""
     return wide_spec(16)
 
 
