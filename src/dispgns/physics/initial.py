@@ -137,7 +137,8 @@ def place_particles(
     The overlap test looks only at the particles in the ``3^D`` cells around
     a draw (cells at least ``2 max(radius)`` wide), so it finds exactly the
     overlaps an all-pairs test finds and placing ``N`` particles costs
-    ``O(N)``: about a second for 10^5 disks. The cells hold a static number
+    ``O(N)`` (92,000 disks: 60 s on a 2-core machine under heavy load, mostly
+    compilation). The cells hold a static number
     of particles each; when a cell fills up, the placement stops there, the
     capacity grows outside ``jit`` and the placement goes on
     (:func:`dispgns.capacity.drive`), so the result never depends on it.
