@@ -15,11 +15,12 @@ from dispgns.data.generate import (
     RadiiGroup,
     generate_dataset,
     paper_spec,
+    preset,
     sample_initial_states,
     tiny_spec,
     trajectory_key,
 )
-from dispgns.physics import PhysicsConfig, PlacementError, sample_initial_state, simulate
+from dispgns.physics import PhysicsConfig, PlacementError, particle_count_range, sample_initial_state, simulate
 
 # Every real generation here uses the tiny preset at this length, so the
 # compiled simulation is shared between tests.
@@ -67,6 +68,29 @@ def test_paper_preset():
     assert spec.connectivity_radius == 0.2
     assert spec.physics == PhysicsConfig()
     assert spec.save_every * spec.physics.dt == pytest.approx(1.5e-3)
+
+
+def test_paper3d_preset_places_its_spheres_in_the_cube():
+    spec = preset("paper3d")
+    assert spec.dim == 3 and spec.physics.box_half_size == 0.04 and spec.n_frames == 200
+    assert spec.counts == {"train": 32, "valid": 4, "test": 6, "test_unseen": 12}
+    assert spec.splits["train"][0].radii_m == paper_spec().splits["train"][0].radii_m
+    assert spec.splits["test_unseen"] == paper_spec().splits["test_unseen"]
+    assert spec.connectivity_radius == 0.5  # 4 x 5 mm / 40 mm
+    # The densest list (unseen {2.75, 4.25} mm) still places: the packing rule works in this cube.
+    items = [item for item in spec.items() if item[0] in ("train", "test_unseen")][31:34]
+    keys = [trajectory_key(0, split, index) for split, index, _ in items]
+    states = sample_initial_states(keys, [radii for _, _, radii in items], spec.physics, dim=3)
+    half = spec.physics.box_half_size
+    for state, (_, _, radii) in zip(states, items):
+        x, a, v = np.asarray(state.position), np.asarray(state.radius), np.asarray(state.velocity)
+        low, high = particle_count_range(state.start_height, max(radii), spec.physics, 3)
+        assert x.shape == (len(a), 3) and low <= len(a) <= high and len(a) >= 179
+        assert np.all(np.abs(x[:, :2]) <= half - a[:, None] + 1e-7) and np.all(x[:, 2] >= state.start_height + a - 1e-7)
+        gaps = np.linalg.norm(x[:, None] - x[None], axis=-1) - (a[:, None] + a[None]) + 2 * np.eye(len(a))
+        assert gaps.min() >= -1e-7
+        vs = spec.physics.settling_speed(min(radii), 3)
+        assert np.all(v == v[0]) and np.all(np.abs(v[0, :2]) <= vs) and abs(v[0, 2]) <= vs / 4
 
 
 def test_spec_replace():

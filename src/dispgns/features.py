@@ -61,20 +61,20 @@ def _safe_norm(x: jnp.ndarray) -> jnp.ndarray:
 
 
 def node_features(
-    position_seq: jnp.ndarray, radius: jnp.ndarray, *, bounds=graph_lib.DEFAULT_BOUNDS, boundary_clip: float = 4.0
+    position_seq: jnp.ndarray, radius: jnp.ndarray, *, bounds=None, boundary_clip: float = 4.0
 ) -> jnp.ndarray:
     """Node features of the paper.
 
     Args:
       position_seq: ``(C, N, D)`` positions, oldest first (normalised units).
       radius: ``(N,)`` radii ``a_i`` (normalised units, > 0).
-      bounds: static box ``((lo, hi),) * D``.
+      bounds: static box ``((lo, hi),) * D`` (``None``: ``[-1, 1]^D``).
       boundary_clip: static clip of the wall distances in radii.
 
     Returns:
       ``(N, (C-1) D + 2 D + 1)``.
     """
-    b = graph_lib.bounds_array(bounds, position_seq.dtype)
+    b = graph_lib.bounds_array(graph_lib.as_bounds(bounds, position_seq.shape[-1]), position_seq.dtype)
     inv_a = (1.0 / radius)[:, None]
     vel = _time_major(velocities(position_seq)) * inv_a
     last = position_seq[-1]
@@ -113,7 +113,7 @@ def graph_features(
     position_seq,
     radius,
     *,
-    bounds=graph_lib.DEFAULT_BOUNDS,
+    bounds=None,
     connectivity_radius: float = 0.2,
     boundary_clip: float = 4.0,
 ):

@@ -127,7 +127,12 @@ def bounds_array(bounds: Sequence[Sequence[float]], dtype=None) -> jnp.ndarray:
 
 
 def as_bounds(bounds, dim: int) -> Bounds:
-    """Validate ``bounds`` for ``dim`` axes and return it as a hashable tuple of ``(lo, hi)`` floats."""
+    """Validate ``bounds`` for ``dim`` axes and return it as a hashable tuple of ``(lo, hi)`` floats.
+
+    ``None`` is the default box ``[-1, 1]^dim`` (normalised units).
+    """
+    if bounds is None:
+        return ((-1.0, 1.0),) * int(dim)
     b = np.asarray(bounds, dtype=float)
     if b.shape != (dim, 2) or not np.all(b[:, 1] > b[:, 0]):
         raise ValueError(f"bounds must be {dim} pairs (lo, hi) with lo < hi, got {bounds!r}")
@@ -143,7 +148,7 @@ def _grid(connectivity_radius: float, bounds: Bounds):
 
 
 def park_padding(
-    position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS
+    position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivity_radius: float, bounds: Bounds | None = None
 ) -> jnp.ndarray:
     """Move padding particles onto a lattice far outside the box.
 
@@ -169,7 +174,7 @@ def park_padding(
     return jnp.where(jnp.asarray(mask)[..., None], position, parked)
 
 
-def parking_lattice(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> np.ndarray:
+def parking_lattice(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds | None = None) -> np.ndarray:
     """The ``(n, dim)`` float64 numpy positions :func:`park_padding` gives padding slots ``0 .. n-1``.
 
     Numpy, so that host code can use it inside a user's ``jit`` without
@@ -187,7 +192,7 @@ def parking_lattice(n: int, dim: int, *, connectivity_radius: float, bounds: Bou
     return base + (2.0 * points + 0.5) * cell_size
 
 
-def cell_list_possible(dim: int, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> bool:
+def cell_list_possible(dim: int, *, connectivity_radius: float, bounds: Bounds | None = None) -> bool:
     """Whether jax-md can build a cell list here: ``D`` of 2 or 3 and >= 3 cells per side."""
     if dim not in (2, 3):
         return False
@@ -259,7 +264,7 @@ def radius_graph(
     *,
     connectivity_radius: float,
     capacity: GraphCapacity,
-    bounds: Bounds = DEFAULT_BOUNDS,
+    bounds: Bounds | None = None,
 ) -> Graph:
     """All ordered pairs with ``|x_s - x_r| < connectivity_radius``, self-loops included.
 
@@ -373,7 +378,7 @@ def host_count_pairs(position, mask=None, *, connectivity_radius: float) -> np.n
 _DENSE_COUNT_MAX_PARTICLES = 1024
 
 
-def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> int:
+def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float, bounds: Bounds | None = None) -> int:
     """Most particles in one cell of the cell list over all frames (padding parked as in :func:`radius_graph`).
 
     ``position``: concrete ``(..., N, D)``; ``mask``: broadcastable to ``position.shape[:-1]``.
@@ -419,7 +424,7 @@ def capacity_for_counts(
     return GraphCapacity(edges=edges, cell=cell)
 
 
-def uses_cell_list(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds = DEFAULT_BOUNDS) -> bool:
+def uses_cell_list(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds | None = None) -> bool:
     """The default candidate search: a cell list from ``tuning.thresholds().cell_list_min_particles`` slots on.
 
     Both searches give the same graph; the cell list is faster for many particles.
@@ -434,7 +439,7 @@ def fit_capacity(
     mask=None,
     *,
     connectivity_radius: float,
-    bounds: Bounds = DEFAULT_BOUNDS,
+    bounds: Bounds | None = None,
     margin: float = 0.05,
     use_cell_list: bool | None = None,
 ) -> GraphCapacity:
@@ -469,7 +474,7 @@ def grow_capacity(
     mask=None,
     *,
     connectivity_radius: float | None = None,
-    bounds: Bounds = DEFAULT_BOUNDS,
+    bounds: Bounds | None = None,
 ) -> GraphCapacity:
     """A capacity on the ladder larger than ``capacity`` (after an overflow), for ``n`` particle slots.
 

@@ -143,9 +143,17 @@ class PhysicsConfig:
         value = self.box_half_size
         return not isinstance(value, tuple) or len(set(value)) == 1
 
-    def settling_speed(self, radius: float) -> float:
-        """Terminal speed (m/s) of an isolated disk of ``radius`` m (D = 2)."""
-        return (self.density - self.fluid_density) * math.pi * radius * self.thickness * self.gravity / self.drag
+    def settling_speed(self, radius: float, dim: int = 2) -> float:
+        """Terminal speed (m/s) of an isolated particle of ``radius`` m: a disk (D = 2) or a sphere (D = 3).
+
+        Buoyant weight over the drag coefficient ``k a``: ``(rho - rho_f) pi a s g / k`` for a disk,
+        ``(rho - rho_f) (4/3) pi a^2 g / k`` for a sphere.
+        """
+        if dim == 2:
+            return (self.density - self.fluid_density) * math.pi * radius * self.thickness * self.gravity / self.drag
+        if dim == 3:
+            return (self.density - self.fluid_density) * (4.0 / 3.0) * math.pi * radius**2 * self.gravity / self.drag
+        raise ValueError(f"spatial dimension must be 2 or 3, got {dim}")
 
     def to_dict(self) -> dict[str, Any]:
         """The fields as JSON values (a per-axis ``box_half_size`` as a list)."""

@@ -384,7 +384,7 @@ def sample_initial_state(
             )
         )
 
-    vs = config.settling_speed(float(radii_choices.min()))
+    vs = config.settling_speed(float(radii_choices.min()), dim)
     velocity = jax.random.uniform(key_velocity, (dim,), dtype, -vs, vs)
     velocity = velocity.at[-1].multiply(0.25)
     velocity = jnp.broadcast_to(velocity, (n_particles, dim))

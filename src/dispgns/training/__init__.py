@@ -4,7 +4,7 @@ The loop (:func:`train`) reports through ``on_log(record)``, the hook for your o
 loggers of :mod:`dispgns.training.loggers` (TensorBoard, W&B) are such callables.
 """
 
-from dispgns.training.batches import Batch, BatchStream, example_index
+from dispgns.training.batches import Batch, BatchStream, example_index, quarter_turns
 from dispgns.training.loggers import LoggerGroup, TensorBoardLogger, WandbLogger, json_safe
 from dispgns.training.loop import LoopResult, NonFiniteLossError, Validator, train
 from dispgns.training.noise import random_walk_noise, target_acceleration
@@ -23,6 +23,7 @@ from dispgns.training.step import (
 __all__ = [
     "Batch",
     "BatchStream",
+    "quarter_turns",
     "example_index",
     "random_walk_noise",
     "target_acceleration",

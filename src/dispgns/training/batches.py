@@ -34,9 +34,9 @@ from flax import struct
 
 from dispgns.arrays import node_budget
 from dispgns.graph import (
-    DEFAULT_BOUNDS,
     Bounds,
     GraphCapacity,
+    as_bounds,
     capacity_for_counts,
     edge_budget_for,
     grow_capacity,
@@ -46,7 +46,7 @@ from dispgns.graph import (
     uses_cell_list,
 )
 
-__all__ = ["Batch", "BatchStream", "ExampleIndex", "example_index"]
+__all__ = ["Batch", "BatchStream", "ExampleIndex", "example_index", "quarter_turns"]
 
 
 @struct.dataclass
@@ -116,6 +116,19 @@ def example_index(frame_counts: Sequence[int], window: int) -> ExampleIndex:
     )
 
 
+def quarter_turns(xy, turns: int):
+    """``xy`` ``(..., 2)`` (the horizontal components) turned by ``turns`` quarter turns counter-clockwise.
+
+    One turn maps ``(x, y)`` to ``(-y, x)``: a rotation by 90 degrees about the vertical axis,
+    exact in floating point (only swaps and sign changes). Works on NumPy and JAX arrays.
+    """
+    x, y = xy[..., 0], xy[..., 1]
+    for _ in range(int(turns) % 4):
+        x, y = -y, x
+    stack = np.stack if isinstance(xy, np.ndarray) else jnp.stack
+    return stack([x, y], axis=-1)
+
+
 class BatchStream:
     """Deterministic, resumable stream of padded training batches.
 
@@ -143,10 +156,14 @@ class BatchStream:
       use_cell_list: build training graphs with the jax-md cell list; ``None``
         (default): :func:`dispgns.graph.uses_cell_list` of the node budget.
         Its per-cell capacity fits the fullest cell of any frame.
-      bounds: the box (only for the cell grid).
+      bounds: the box (``None``: ``[-1, 1]^D``).
       mirror: reflect each example on the horizontal axes with probability
         1/2, drawn per batch index (so resuming replays the same batches);
         needs a box symmetric about 0.
+      quarter_turns: turn each example by ``k`` quarter turns about the
+        vertical axis, ``k`` uniform in 0..3, drawn per batch index from a
+        stream of its own (the mirror draws are those without it); ``D = 3``
+        and a box whose two horizontal sides are equal and symmetric about 0.
       shards: the batch is split into this many equal parts, one per device
         (data parallelism, :mod:`dispgns.training.distributed`): the edge
         budget is then that of the largest part's merged graph, the same in
@@ -167,10 +184,11 @@ class BatchStream:
         capacity_margin: float = 0.03,
         capacity_extra: int = 64,
         use_cell_list: bool | None = None,
-        bounds: Bounds = DEFAULT_BOUNDS,
+        bounds: Bounds | None = None,
         compact_edges: bool = True,
         mirror: bool = False,
         shards: int = 1,
+        quarter_turns: bool = False,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -183,8 +201,7 @@ class BatchStream:
         if int(shards) != shards or shards < 1 or batch_size % shards:
             raise ValueError(f"shards must be an integer >= 1 that divides batch_size {batch_size}, got {shards!r}")
         self.shards = int(shards)
-        if self.mirror and any(abs(lo + hi) > 1e-12 for lo, hi in bounds):
-            raise ValueError(f"mirror augmentation needs a box symmetric about 0, got {bounds}")
+        self.quarter_turns = bool(quarter_turns)
         self.shuffle = bool(shuffle)
         self.connectivity_radius = float(connectivity_radius)
         self.capacity_margin = float(capacity_margin)
@@ -205,6 +222,14 @@ class BatchStream:
         if len(dims) != 1:
             raise ValueError(f"trajectories have different dimensions {sorted(dims)}")
         self.dim = dims.pop()
+        bounds = as_bounds(bounds, self.dim)
+        if self.mirror and any(abs(lo + hi) > 1e-12 for lo, hi in bounds):
+            raise ValueError(f"mirror augmentation needs a box symmetric about 0, got {bounds}")
+        if self.quarter_turns and (self.dim != 3 or bounds[0] != bounds[1] or abs(bounds[0][0] + bounds[0][1]) > 1e-12):
+            raise ValueError(
+                "quarter-turn augmentation needs 3-D trajectories in a box with equal horizontal sides "
+                f"symmetric about 0, got D = {self.dim} and {bounds}"
+            )
         self.index = example_index([x.shape[0] for x in self.positions], self.window)
         if len(self.index) < self.batch_size:
             raise ValueError(
@@ -252,6 +277,7 @@ class BatchStream:
             pushforward_steps=train_config.pushforward_steps,
             bounds=model_config.bounds,
             mirror=train_config.mirror_augmentation,
+            quarter_turns=train_config.quarter_turn_augmentation,
             **kwargs,
         )
 
@@ -328,18 +354,36 @@ class BatchStream:
         flips = None
         if self.mirror:
             flips = np.random.default_rng([self.seed, 1, int(i)]).integers(0, 2, (len(ids), self.dim - 1)) == 1
+        turns = None
+        if self.quarter_turns:
+            turns = np.random.default_rng([self.seed, 2, int(i)]).integers(0, 4, len(ids))
         if part == slice(None):
-            return self.make_batch(ids, flips)
-        local = self.make_batch(ids[part], None if flips is None else flips[part], nodes=self._node_budget(ids))
+            return self.make_batch(ids, flips, turns=turns)
+        local = self.make_batch(
+            ids[part],
+            None if flips is None else flips[part],
+            turns=None if turns is None else turns[part],
+            nodes=self._node_budget(ids),
+        )
         return local.with_capacity(self.capacity_for(ids), self.edge_budget_for(ids))
 
-    def make_batch(self, ids: Sequence[int], flips: np.ndarray | None = None, *, nodes: int | None = None) -> Batch:
+    def make_batch(
+        self,
+        ids: Sequence[int],
+        flips: np.ndarray | None = None,
+        *,
+        turns: np.ndarray | None = None,
+        nodes: int | None = None,
+    ) -> Batch:
         """A padded batch of the given example ids.
 
         Args:
           ids: example ids.
           flips: optional ``(len(ids), D - 1)`` bool: reflect example ``k`` on
             axis ``d`` (``x_d -> -x_d``) where ``flips[k, d]``.
+          turns: optional ``(len(ids),)`` int (D = 3): then turn example ``k``
+            by ``turns[k]`` quarter turns about the vertical axis,
+            ``(x, y) -> (-y, x)`` per turn.
           nodes: particle slots (``None``: the smallest node budget that holds them).
         """
         ids = np.asarray(ids, np.int64)
@@ -354,6 +398,8 @@ class BatchStream:
             position[k, :, :n] = self.positions[t][s : s + self.window]
             if flips is not None:
                 position[k, :, :n, :-1] *= np.where(flips[k], -1.0, 1.0).astype(np.float32)
+            if turns is not None:
+                position[k, :, :n, :2] = quarter_turns(position[k, :, :n, :2], int(turns[k]))
             radius[k, :n] = self.radii[t]
             mask[k, :n] = True
         capacity = self.capacity_for(ids)

@@ -73,6 +73,11 @@ class TrainConfig:
         is along the last axis), so that the model sees as many wall
         contacts on one side as on the other (False;
         ``experiments/paper/config.yaml`` turns it on).
+      quarter_turn_augmentation: turn each training example by a random
+        multiple of 90 degrees about the vertical (last) axis, each of the
+        four equally likely (D = 3 only: the cube's walls and gravity are
+        unchanged by it). With ``mirror_augmentation`` the model sees all
+        eight symmetries of the square floor (False).
       num_steps: training steps of a full run (2 million in the paper).
       seed: seed of the parameter initialisation, data order and noise.
       log_every: steps between log records (mean loss since the last one).
@@ -96,6 +101,7 @@ class TrainConfig:
     standardize: bool = True
     pushforward_steps: int = 0
     mirror_augmentation: bool = False
+    quarter_turn_augmentation: bool = False
     num_steps: int = 2_000_000
     seed: int = 0
     log_every: int = 100
