@@ -483,3 +483,54 @@ def test_maximum_mean_discrepancy_is_symmetric_zero_on_equal_sets_and_by_hand():
     padded = np.concatenate([y, np.full((3, 2), 9.0, np.float32)])
     masked = M.maximum_mean_discrepancy(x, padded, bandwidths=bandwidths, mask_y=np.arange(33) < 30)
     assert float(masked) == pytest.approx(float(xy), rel=1e-5)
+
+
+def test_rollout_statistics_of_a_translate_and_of_the_truth_itself_with_padding(tmp_path):
+    truth, radius = _random_walk(t=30, n=12)
+    shift = np.array([0.01, -0.02], np.float32)
+    prediction = _offset_after_inputs(truth, shift)
+    kw = dict(box_half_size=L, input_frames=C, statistics=True)
+    m = M.rollout_metrics(prediction, truth, radius, chaos_floor=truth, **kw)
+    # The chaos floor here is the truth: every statistic agrees, every distance is 0.
+    for key in (
+        "chaos_floor_rdf_l1",
+        "chaos_floor_height_profile_distance",
+        "chaos_floor_mmd_position_final",
+        "chaos_floor_mmd_velocity_mean",
+        "chaos_floor_front_height_mean_abs_error_mm",
+        "chaos_floor_settling_velocity_error_mm_s",
+        "chaos_floor_bed_area_fraction_error",
+    ):
+        assert abs(m[key]) < 1e-6, key
+    assert abs(m["chaos_floor_sinkhorn_position_final"]) < 1e-5
+    # A translate by t: Sinkhorn divergence |t|^2, heights off by t_y (2 mm down), same final velocities.
+    assert m["sinkhorn_position_final"] == pytest.approx(float(shift @ shift), rel=0.05)
+    assert m["front_height_final_error_mm"] == pytest.approx(-2.0, abs=1e-3)
+    assert m["mean_height_final_error_mm"] == pytest.approx(-2.0, abs=1e-3)
+    assert m["settling_velocity_error_mm_s"] == pytest.approx(0.0, abs=1e-3)
+    assert abs(m["mmd_velocity_final"]) < 1e-6 and abs(m["sinkhorn_velocity_final"]) < 1e-5
+    assert len(m["sinkhorn_position"]) == len(m["distribution_frames"]) and m["distribution_frames"][-1] == 30 - C - 1
+    assert "constant_velocity_sinkhorn_position_final" not in m and m["constant_velocity_mmd_position_final"] > 0
+    # Padding particles (far away, masked) change nothing.
+    pad = lambda x: np.concatenate([x, np.full((x.shape[0], 3, 2), 0.9, np.float32)], axis=1)  # noqa: E731
+    mask = np.arange(15) < 12
+    padded = M.rollout_metrics(
+        pad(prediction),
+        pad(truth),
+        np.concatenate([radius, np.full(3, 0.04, np.float32)]),
+        chaos_floor=pad(truth),
+        mask=mask,
+        **kw,
+    )
+    for key in (
+        "rdf_l1",
+        "sinkhorn_position_final",
+        "mmd_position_final",
+        "bed_area_fraction_error",
+        "front_height_final_error_mm",
+    ):
+        assert padded[key] == pytest.approx(m[key], rel=1e-4, abs=1e-6), key
+    from dispgns.render import plot_statistics
+
+    plot_statistics(M.summarize([m, m]), path=tmp_path / "statistics.png")
+    assert (tmp_path / "statistics.png").stat().st_size > 0

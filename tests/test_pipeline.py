@@ -108,6 +108,10 @@ def test_evaluate_writes_metrics_predictions_and_plots(tiny_dataset, trained, tm
         with h5py.File(out / "predictions" / f"{split}.h5") as f:
             assert f.attrs["predicted"]
         assert Image.open(out / f"error_curves_{split}.png").size[0] > 300
+        # The suspension statistics, for the model and both references, and their picture.
+        for key in ("rdf_l1", "chaos_floor_rdf_l1", "constant_velocity_rdf_l1", "chaos_floor_sinkhorn_position_final"):
+            assert np.isfinite(metrics[key]), key
+        assert Image.open(out / f"statistics_{split}.png").size[0] > 300
 
 
 def test_render_from_predictions_and_from_model(tiny_dataset, trained, tmp_path, capsys):

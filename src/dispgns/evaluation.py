@@ -337,6 +337,7 @@ def evaluate_trajectories(
     physics_compiler_options: Mapping[str, Any] | None = None,
     mesh: jax.sharding.Mesh | None = None,
     bounds=None,
+    statistics: bool = False,
 ) -> dict[str, Any]:
     """Roll out and score every trajectory of a split.
 
@@ -365,6 +366,10 @@ def evaluate_trajectories(
         process returns the whole split.
       bounds: the dataset's box in normalised units, for the wall
         violations (``None``: ``model_config.bounds``).
+      statistics: add the suspension statistics of
+        :func:`dispgns.metrics.rollout_metrics` (front and settling velocity,
+        final bed, g(r), Sinkhorn divergence and MMD) for the model, the
+        constant-velocity baseline and the chaos floor side by side.
 
     Returns:
       ``{"predictions": [(T, N, D), ...], "metrics": [rollout_metrics dict,
@@ -413,6 +418,7 @@ def evaluate_trajectories(
                 chaos_floor=None if floor is None else np.asarray(floor, np.float32),
                 physics_config=physics_config,
                 bounds=model_config.bounds if bounds is None else bounds,
+                statistics=statistics,
             )
         )
     return {"predictions": predictions, "metrics": metrics, "summary": summarize(metrics), "chaos_floor": with_chaos}

@@ -46,6 +46,8 @@ from dispgns.physics import PhysicsConfig, particle_mass
 
 __all__ = [
     "DEFAULT_HORIZONS",
+    "RDF_PAIRS",
+    "STATISTICS_DEFAULTS",
     "bed_area_fraction",
     "front_height",
     "height_profile",
@@ -699,6 +701,155 @@ _metric_arrays_jit = jax.jit(
 )
 
 
+# Settings of the suspension statistics in rollout_metrics (normalised lengths unless said otherwise).
+STATISTICS_DEFAULTS: dict[str, Any] = {
+    "front_quantile": 0.95,  # the front is the height below which 95 % of the centres lie
+    "profile_bins": 20,  # slabs of the final height profile (1 cm for L = 0.1 m)
+    "rdf_bins": 30,
+    "rdf_max": 0.3,  # g(r) up to 0.3 L (3 cm, ~4 mean diameters), shells of 1 mm
+    "distribution_frames": 10,  # frames (evenly spaced, the last included) of the Sinkhorn / MMD curves
+    "sinkhorn_epsilon_position": 1e-3,  # (normalised length)^2: (3.2 mm)^2, about a radius squared
+    "sinkhorn_epsilon_velocity": 1e-3,  # (m/s)^2
+    "mmd_bandwidths_position": (0.05, 0.2, 0.8),  # normalised: 5 mm, 2 cm, 8 cm
+    "mmd_bandwidths_velocity": (0.01, 0.04, 0.16),  # m/s
+}
+RDF_PAIRS: tuple[str, ...] = ("small_small", "small_large", "large_large")
+"""Size-class pairs of the partial g(r): particles below the midpoint of the smallest and largest radius are small."""
+
+
+def _statistics_of(trajectory, radius, mask, *, c, frame_dt, box_half_size, settings, bounds):
+    """Per-trajectory statistics of one (T, N, D) trajectory: curves over the predicted frames, final-frame bed."""
+    s = settings
+    dim = trajectory.shape[-1]
+    final = trajectory[-1]
+    front = front_height(trajectory[c:], mask, quantile=s["front_quantile"])
+    height = mean_height(trajectory[c:], mask)
+    counts, fraction = height_profile(final, radius, mask, bins=s["profile_bins"], bounds=bounds)
+    real_radius = jnp.where(mask, radius, jnp.nan)
+    middle = 0.5 * (jnp.nanmin(real_radius) + jnp.nanmax(real_radius))
+    small = mask & (radius < middle)
+    large = mask & (radius >= middle)
+    volume = 2.0**dim if bounds is None else float(np.prod([hi - lo for lo, hi in bounds]))
+    rdf = dict(r_max=s["rdf_max"], bins=s["rdf_bins"], volume=volume)
+    r, g_all = radial_distribution(final, mask=mask, **rdf)
+    partial = [
+        radial_distribution(final, mask=b, query_mask=a, **rdf)[1]
+        for a, b in ((small, small), (small, large), (large, large))
+    ]
+    return {
+        "front": front,
+        "height": height,
+        "front_velocity": settling_velocity(front, frame_dt=frame_dt, box_half_size=box_half_size),
+        "height_velocity": settling_velocity(height, frame_dt=frame_dt, box_half_size=box_half_size),
+        "profile": counts,
+        "fraction": fraction,
+        "bed_fraction": bed_area_fraction(final, radius, mask, quantile=s["front_quantile"], bounds=bounds),
+        "rdf_r": r,
+        "rdf": jnp.stack([g_all, *partial]),
+        "class_counts": jnp.stack([jnp.sum(small), jnp.sum(large)]),
+    }
+
+
+def _distances(trajectory, truth, mask, frames, *, frame_dt, box_half_size, settings, sinkhorn: bool):
+    """Sinkhorn divergence (if ``sinkhorn``) and MMD^2 of positions and velocities (m/s) at ``frames``, ``(K,)``."""
+    s = settings
+    index = jnp.asarray(frames)
+    scale = box_half_size / frame_dt
+
+    def clouds(t):
+        return t[index], (t[index] - t[index - 1]) * scale
+
+    x, vx = clouds(trajectory)
+    y, vy = clouds(truth)
+    both = dict(mask_x=mask, mask_y=mask)
+
+    def per_frame(fn, u, v, **kw):
+        return jax.vmap(lambda a, b: fn(a, b, **kw, **both))(u, v)
+
+    out = {
+        "mmd_position": per_frame(maximum_mean_discrepancy, x, y, bandwidths=s["mmd_bandwidths_position"]),
+        "mmd_velocity": per_frame(maximum_mean_discrepancy, vx, vy, bandwidths=s["mmd_bandwidths_velocity"]),
+    }
+    if sinkhorn:
+        out["sinkhorn_position"] = per_frame(sinkhorn_divergence, x, y, epsilon=s["sinkhorn_epsilon_position"])
+        out["sinkhorn_velocity"] = per_frame(sinkhorn_divergence, vx, vy, epsilon=s["sinkhorn_epsilon_velocity"])
+    return out
+
+
+def _statistics_arrays(
+    trajectories, radius, mask, *, input_frames, frame_dt, box_half_size, frames, settings, sinkhorn_rows, bounds
+):
+    """Statistics of every trajectory of ``(M, T, N, D)`` (the truth first) and the distances of the others to it.
+
+    Vectorised over the trajectories (and over the frames inside :func:`_distances`) so that the Sinkhorn
+    solves are one loop in one program, not one copy per frame and trajectory. Only the rows
+    ``sinkhorn_rows`` of ``trajectories[1:]`` get Sinkhorn divergences: a vectorised solve runs until its
+    slowest member converges, and the constant-velocity cloud, metres outside the box, takes the 2000
+    iterations ott allows at this epsilon (10x the model's).
+    """
+    settings = dict(settings)
+    common = dict(frame_dt=frame_dt, box_half_size=box_half_size, settings=settings)
+    truth = trajectories[0]
+    stats = jax.vmap(lambda t: _statistics_of(t, radius, mask, c=input_frames, bounds=bounds, **common))(trajectories)
+    distances = jax.vmap(lambda t: _distances(t, truth, mask, frames, sinkhorn=False, **common))(trajectories[1:])
+    rows = trajectories[1:][jnp.asarray(sinkhorn_rows, jnp.int32)]
+    sinkhorn = jax.vmap(lambda t: _distances(t, truth, mask, frames, sinkhorn=True, **common))(rows)
+    for key in ("sinkhorn_position", "sinkhorn_velocity"):
+        full = jnp.full(distances["mmd_position"].shape, jnp.nan, sinkhorn[key].dtype)
+        distances[key] = full.at[jnp.asarray(sinkhorn_rows, jnp.int32)].set(sinkhorn[key])
+    return stats, distances
+
+
+_statistics_arrays_jit = jax.jit(
+    _statistics_arrays,
+    static_argnames=("input_frames", "frame_dt", "box_half_size", "frames", "settings", "sinkhorn_rows", "bounds"),
+)
+
+
+def _statistics_report(prefix: str, mine, truth, distances, *, box_half_size: float, n_real: int) -> dict[str, Any]:
+    """The JSON entries of one compared trajectory (model ``""``, ``constant_velocity_``, ``chaos_floor_``)."""
+    mm = box_half_size * 1e3
+    out: dict[str, Any] = {}
+    front_error = np.asarray(mine["front"], np.float64) - np.asarray(truth["front"], np.float64)
+    height_error = np.asarray(mine["height"], np.float64) - np.asarray(truth["height"], np.float64)
+    out[f"{prefix}front_height_error"] = _floats(front_error)
+    out[f"{prefix}front_height_mean_abs_error_mm"] = float(np.mean(np.abs(front_error))) * mm
+    out[f"{prefix}front_height_final_error_mm"] = float(front_error[-1]) * mm
+    if prefix:  # the model's mean-height entries exist already (rollout_metrics)
+        out[f"{prefix}mean_height"] = _floats(mine["height"])
+        out[f"{prefix}mean_height_mean_abs_error_mm"] = float(np.mean(np.abs(height_error))) * mm
+        out[f"{prefix}mean_height_final_error_mm"] = float(height_error[-1]) * mm
+    else:
+        out["mean_height_final_error_mm"] = float(height_error[-1]) * mm
+    for name, key in (("front_settling_velocity", "front_velocity"), ("settling_velocity", "height_velocity")):
+        out[f"{prefix}{name}_mm_s"] = float(mine[key]) * 1e3
+        out[f"{prefix}{name}_error_mm_s"] = (float(mine[key]) - float(truth[key])) * 1e3
+    profile = np.asarray(mine["profile"], np.float64)
+    out[f"{prefix}height_profile"] = _floats(profile)
+    # Half the L1 distance of the count profiles over N: the fraction of particles in the wrong slab.
+    out[f"{prefix}height_profile_distance"] = 0.5 * float(np.sum(np.abs(profile - truth["profile"]))) / n_real
+    out[f"{prefix}area_fraction_profile"] = _floats(mine["fraction"])
+    out[f"{prefix}area_fraction_profile_max_error"] = float(np.max(np.abs(mine["fraction"] - truth["fraction"])))
+    out[f"{prefix}bed_area_fraction"] = float(mine["bed_fraction"])
+    out[f"{prefix}bed_area_fraction_error"] = float(mine["bed_fraction"]) - float(truth["bed_fraction"])
+    rdf, rdf_truth = np.asarray(mine["rdf"], np.float64), np.asarray(truth["rdf"], np.float64)
+    out[f"{prefix}rdf"] = _floats(rdf[0])
+    # Mean |g - g_truth| over the shells (the L1 distance over r_max): dimensionless.
+    out[f"{prefix}rdf_l1"] = float(np.mean(np.abs(rdf[0] - rdf_truth[0])))
+    small, large = (int(v) for v in np.asarray(truth["class_counts"]))
+    if small >= 2 and large >= 2:
+        for row, pair in enumerate(RDF_PAIRS, start=1):
+            out[f"{prefix}rdf_l1_{pair}"] = float(np.mean(np.abs(rdf[row] - rdf_truth[row])))
+    for key, values in distances.items():
+        values = np.asarray(values, np.float64)
+        if key.startswith("sinkhorn") and prefix == "constant_velocity_":
+            continue  # not computed (see _statistics_arrays)
+        out[f"{prefix}{key}"] = _floats(values)
+        out[f"{prefix}{key}_final"] = float(values[-1])
+        out[f"{prefix}{key}_mean"] = float(np.mean(values))
+    return out
+
+
 def _error_family(prefix: str, curve, mean_diameter: float, box_half_size: float, horizons) -> dict[str, Any]:
     curve = np.asarray(curve, np.float64)
     mse = float(np.mean(curve))
@@ -729,6 +880,8 @@ def rollout_metrics(
     chaos_floor=None,
     physics_config: PhysicsConfig | None = None,
     bounds=None,
+    statistics: bool = False,
+    statistics_settings: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Every metric of one rollout, as a JSON-ready dict.
 
@@ -749,6 +902,10 @@ def rollout_metrics(
         violations (``None``: ``[-1, 1]^D``, the paper's box).
       physics_config: masses for the kinetic energy (default
         :class:`PhysicsConfig`; only ``thickness`` and ``density`` matter).
+      statistics: add the suspension statistics below (off by default:
+        their program, with its Sinkhorn solves, takes ~20 s to compile
+        for each particle-count bucket, then ~1-3 s per trajectory).
+      statistics_settings: overrides of :data:`STATISTICS_DEFAULTS`.
 
     Returns:
       A dict of Python scalars and lists. Per-frame lists have ``T - C``
@@ -782,6 +939,37 @@ def rollout_metrics(
       * ``mean_height_truth``, ``mean_height_error`` (per frame, prediction
         minus truth, normalised), ``mean_height_mean_abs_error``,
         ``mean_height_final_error`` (normalised), ``mean_height_mean_abs_error_mm``;
+      * suspension statistics (with ``statistics``), for the model (no
+        prefix), ``constant_velocity_`` and ``chaos_floor_`` (if given) side
+        by side, each against the truth: the front (:func:`front_height`)
+        ``front_height_truth``, ``*front_height_error`` (per frame,
+        normalised), ``*front_height_mean_abs_error_mm``,
+        ``*front_height_final_error_mm``; settling velocities (least-squares
+        slopes over the predicted frames) of the front and of the mean
+        height, ``front_settling_velocity_truth_mm_s``,
+        ``settling_velocity_truth_mm_s``, ``*front_settling_velocity_mm_s``,
+        ``*front_settling_velocity_error_mm_s``, ``*settling_velocity_mm_s``,
+        ``*settling_velocity_error_mm_s``; the mean height of the baselines
+        ``*mean_height`` and ``*mean_height_mean_abs_error_mm``,
+        ``*mean_height_final_error_mm``; the final bed
+        (:func:`height_profile`): ``height_profile_truth``,
+        ``*height_profile`` (counts per slab), ``*height_profile_distance``
+        (fraction of particles in another slab than the truth's count says),
+        ``area_fraction_profile_truth``, ``*area_fraction_profile``,
+        ``*area_fraction_profile_max_error``, ``bed_area_fraction_truth``,
+        ``*bed_area_fraction``, ``*bed_area_fraction_error``
+        (:func:`bed_area_fraction`); g(r) of the final frame
+        (:func:`radial_distribution`, density over the box) ``rdf_r``,
+        ``rdf_truth``, ``*rdf``, ``*rdf_l1`` (mean ``|g - g_truth|`` over the
+        shells) and, when both size classes (:data:`RDF_PAIRS`) have at least
+        two particles, ``*rdf_l1_small_small``, ``*rdf_l1_small_large``,
+        ``*rdf_l1_large_large``; distribution distances at the predicted
+        frames ``distribution_frames``: ``*sinkhorn_position``
+        (normalised length squared), ``*sinkhorn_velocity`` ((m/s)^2),
+        ``*mmd_position``, ``*mmd_velocity`` (MMD^2, dimensionless), each as a
+        list, ``*_final`` and ``*_mean`` (no Sinkhorn divergence for the
+        constant-velocity baseline, whose cloud leaves the box: the solve
+        would not converge at this epsilon, and its MMD tells the story);
       * ``finite`` (all predicted positions finite) and the settings
         ``n_frames``, ``n_particles``, ``input_frames``, ``frame_dt``,
         ``box_half_size``, ``wall_tolerance``, ``overlap_coeff``.
@@ -875,6 +1063,79 @@ def rollout_metrics(
     out["mean_height_mean_abs_error"] = float(np.mean(np.abs(height_error)))
     out["mean_height_final_error"] = float(height_error[-1])
     out["mean_height_mean_abs_error_mm"] = out["mean_height_mean_abs_error"] * box_half_size * 1e3
+
+    if statistics:
+        compared = [
+            ("", prediction),
+            ("constant_velocity_", np.asarray(constant_velocity_rollout(truth, input_frames=c))),
+        ]
+        if chaos_floor is not None:
+            compared.append(("chaos_floor_", chaos_floor))
+        out.update(
+            _statistics(
+                truth,
+                compared,
+                radius,
+                real,
+                input_frames=c,
+                frame_dt=float(frame_dt),
+                box_half_size=float(box_half_size),
+                settings=statistics_settings,
+                bounds=None if bounds is None else tuple(tuple(float(v) for v in pair) for pair in bounds),
+            )
+        )
+    return out
+
+
+def _statistics(
+    truth, compared, radius, real, *, input_frames, frame_dt, box_half_size, settings, bounds=None
+) -> dict[str, Any]:
+    """The suspension statistics of :func:`rollout_metrics` (host side)."""
+    unknown = sorted(set(settings or {}) - set(STATISTICS_DEFAULTS))
+    if unknown:
+        raise ValueError(f"unknown statistics settings {unknown}; expected some of {sorted(STATISTICS_DEFAULTS)}")
+    settings = {**STATISTICS_DEFAULTS, **(settings or {})}
+    frozen = tuple(sorted((k, tuple(v) if isinstance(v, (list, tuple)) else v) for k, v in settings.items()))
+    n_frames, n = truth.shape[:2]
+    c = input_frames
+    frames = tuple(sorted({int(round(v)) for v in np.linspace(c, n_frames - 1, int(settings["distribution_frames"]))}))
+    extra = -n % _PARTICLE_BUCKET
+    stacked = np.stack([truth] + [np.asarray(t, truth.dtype) for _, t in compared])
+    stats, distances = _statistics_arrays_jit(
+        pad_particles(stacked, extra, axis=2, fill=0.0),
+        pad_particles(radius, extra, axis=0, fill=1.0),
+        pad_particles(real, extra, axis=0, fill=False),
+        input_frames=c,
+        frame_dt=frame_dt,
+        box_half_size=box_half_size,
+        frames=frames,
+        settings=frozen,
+        sinkhorn_rows=tuple(m for m, (prefix, _) in enumerate(compared) if prefix != "constant_velocity_"),
+        bounds=bounds,
+    )
+    stats, distances = jax.device_get((stats, distances))
+    one = [{key: value[m] for key, value in stats.items()} for m in range(stacked.shape[0])]
+    truth_stats = one[0]
+    mm = box_half_size * 1e3
+    out: dict[str, Any] = {
+        "distribution_frames": [k - c for k in frames],
+        "front_height_truth": _floats(truth_stats["front"]),
+        "front_settling_velocity_truth_mm_s": float(truth_stats["front_velocity"]) * 1e3,
+        "settling_velocity_truth_mm_s": float(truth_stats["height_velocity"]) * 1e3,
+        "front_height_truth_final_mm": float(truth_stats["front"][-1]) * mm,
+        "height_profile_truth": _floats(truth_stats["profile"]),
+        "area_fraction_profile_truth": _floats(truth_stats["fraction"]),
+        "bed_area_fraction_truth": float(truth_stats["bed_fraction"]),
+        "rdf_r": _floats(truth_stats["rdf_r"]),
+        "rdf_truth": _floats(truth_stats["rdf"][0]),
+    }
+    for m, (prefix, _) in enumerate(compared):
+        mine_distances = {key: value[m] for key, value in distances.items()}
+        out.update(
+            _statistics_report(
+                prefix, one[m + 1], truth_stats, mine_distances, box_half_size=box_half_size, n_real=int(real.sum())
+            )
+        )
     return out
 
 

@@ -39,6 +39,7 @@ __all__ = [
     "frame_grid",
     "plot_error_curves",
     "plot_rollout_errors",
+    "plot_statistics",
     "plot_training_curve",
     "rollout_animation",
     "save_figure",
@@ -517,6 +518,98 @@ def plot_rollout_errors(
     }
     curves = {label: value for label, value in curves.items() if value is not None}
     return plot_error_curves(curves, frame_dt=frame_dt, title=title, path=path, **kwargs)
+
+
+def _scalar(metrics: Mapping[str, Any], key: str) -> float | None:
+    value = metrics.get(key)
+    if isinstance(value, Mapping):
+        value = value.get("mean")
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+def plot_statistics(
+    metrics: Mapping[str, Any],
+    *,
+    frame_dt: float | None = None,
+    box_half_size: float | None = None,
+    title: str | None = None,
+    figsize=(13.0, 4.0),
+    dpi: float = 100,
+    path=None,
+) -> Figure:
+    """The suspension statistics of a rollout: truth, model, constant velocity and chaos floor overlaid.
+
+    Three panels: the mean height against time, the final height profile
+    (particles per slab against height) and the final frame's g(r).
+
+    Args:
+      metrics: a :func:`dispgns.metrics.rollout_metrics` dict computed with
+        ``statistics=True``, or the :func:`dispgns.metrics.summarize` of
+        several (curves are then means over trajectories).
+      frame_dt: s per frame; box_half_size: ``L`` in m (default: the dict's).
+      title, figsize, dpi: labels and size. path: write atomically.
+    """
+    frame_dt = _scalar(metrics, "frame_dt") if frame_dt is None else frame_dt
+    box_half_size = _scalar(metrics, "box_half_size") if box_half_size is None else box_half_size
+    scale, unit = (box_half_size * 1e3, "mm") if box_half_size else (1.0, "L")
+    fig = _new_figure(figsize, dpi, layout="constrained")
+    height_ax, profile_ax, rdf_ax = fig.subplots(1, 3)
+
+    def mean_of(key):
+        value = metrics.get(key)
+        return None if value is None else _curve(value)[0]
+
+    truth = mean_of("mean_height_truth")
+    if truth is not None:
+        steps = np.arange(1, truth.size + 1, dtype=np.float64)
+        x = steps * frame_dt if frame_dt else steps
+        error = mean_of("mean_height_error")
+        lines = {
+            "truth": truth,
+            "model": None if error is None else truth + error,
+            "constant velocity": mean_of("constant_velocity_mean_height"),
+            "chaos floor": mean_of("chaos_floor_mean_height"),
+        }
+        for label, value in lines.items():
+            if value is not None:
+                height_ax.plot(x, value * scale, label=label, linestyle="--" if label == "chaos floor" else "-")
+        height_ax.set_xlabel("time after the last input frame (s)" if frame_dt else "model steps")
+        height_ax.set_ylabel(f"mean height ({unit})")
+        low = np.nanmin(truth) * scale
+        span = (np.nanmax(truth) - np.nanmin(truth)) * scale
+        height_ax.set_ylim(low - 0.3 * span, np.nanmax(truth) * scale + 0.3 * span)
+        height_ax.legend()
+    profile = mean_of("height_profile_truth")
+    if profile is not None:
+        edges = np.linspace(-1.0, 1.0, profile.size + 1) * scale
+        for label, key in (
+            ("truth", "height_profile_truth"),
+            ("model", "height_profile"),
+            ("constant velocity", "constant_velocity_height_profile"),
+            ("chaos floor", "chaos_floor_height_profile"),
+        ):
+            value = mean_of(key)
+            if value is not None:
+                profile_ax.stairs(value, edges, orientation="horizontal", label=label)
+        profile_ax.set_xlabel("particles per slab (final frame)")
+        profile_ax.set_ylabel(f"height ({unit})")
+        profile_ax.legend()
+    r = mean_of("rdf_r")
+    if r is not None:
+        for label, key in (("truth", "rdf_truth"), ("model", "rdf"), ("chaos floor", "chaos_floor_rdf")):
+            value = mean_of(key)
+            if value is not None:
+                rdf_ax.plot(r * scale, value, label=label, linestyle="--" if label == "chaos floor" else "-")
+        rdf_ax.set_xlabel(f"r ({unit})")
+        rdf_ax.set_ylabel("g(r), final frame")
+        rdf_ax.legend()
+    for ax in (height_ax, profile_ax, rdf_ax):
+        ax.grid(True, alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
 
 
 def _running_mean(values: np.ndarray, window: int) -> np.ndarray:

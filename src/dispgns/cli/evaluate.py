@@ -50,6 +50,12 @@ def register(subparsers) -> None:
     parser.add_argument("--max-trajectories", type=int, metavar="K", help="only the first K trajectories per split")
     parser.add_argument("--batch-size", type=int, default=6, metavar="B", help="trajectories rolled out together")
     parser.add_argument("--no-chaos", action="store_true", help="skip the chaos-floor reference")
+    parser.add_argument(
+        "--no-statistics",
+        action="store_true",
+        help="skip the suspension statistics (front and settling velocity, final bed, g(r), Sinkhorn divergence, "
+        "MMD) and their pictures",
+    )
     add_distributed_arguments(
         parser,
         "Each group of trajectories is spread over this process's devices; with --distributed the trajectories "
@@ -106,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         raise file_error(error, out) from None
     print(table(report))
-    print(f"wrote {out / METRICS_FILE}, {out / 'predictions'}/*.h5 and {out}/error_curves_*.png")
+    pictures = "error_curves_*.png" + ("" if args.no_statistics else ", statistics_*.png")
+    print(f"wrote {out / METRICS_FILE}, {out / 'predictions'}/*.h5 and {out}/{pictures}")
     return 0
 
 
@@ -120,7 +127,7 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
     from dispgns.data import Trajectory, write_split
     from dispgns.data.format import split_filename
     from dispgns.evaluation import evaluate_trajectories
-    from dispgns.render import plot_rollout_errors
+    from dispgns.render import plot_rollout_errors, plot_statistics
     from dispgns.training.checkpoint import write_json
 
     c = model_config.input_sequence_length
@@ -170,6 +177,7 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
                 mesh=local_mesh(),
                 compiler_options=network_options(args, model_config),
                 physics_compiler_options=physics_options(args),
+                statistics=not args.no_statistics,
             )
         except ValueError as error:  # the host conveniences' input checks: a dataset the model cannot take
             raise CLIError(f"{Path(args.data) / (split + '.h5')}: {error}") from None
@@ -188,6 +196,14 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
             title=f"{split}: rollout error",
             path=out / f"error_curves_{split}.png",
         )
+        if not args.no_statistics:
+            plot_statistics(
+                result["summary"],
+                frame_dt=metadata.frame_dt,
+                box_half_size=metadata.box_half_size,
+                title=f"{split}: suspension statistics (mean over {len(trajectories)} trajectories)",
+                path=out / f"statistics_{split}.png",
+            )
         report["splits"][split] = {
             "summary": result["summary"],
             "trajectories": result["metrics"],
@@ -211,6 +227,38 @@ ROWS = (
     ("overlapping pairs, truth", "overlaps_truth_total"),
 )
 
+# The suspension statistics (shown when they were computed): each for the model, then the same distance
+# for the constant-velocity baseline and for the chaos floor, all against the ground truth.
+STATISTICS_ROWS = (
+    ("mean height error (mm, mean abs)", "mean_height_mean_abs_error_mm"),
+    ("  constant velocity", "constant_velocity_mean_height_mean_abs_error_mm"),
+    ("  chaos floor", "chaos_floor_mean_height_mean_abs_error_mm"),
+    ("front settling velocity, truth (mm/s)", "front_settling_velocity_truth_mm_s"),
+    ("front settling velocity error (mm/s)", "front_settling_velocity_error_mm_s"),
+    ("  constant velocity", "constant_velocity_front_settling_velocity_error_mm_s"),
+    ("  chaos floor", "chaos_floor_front_settling_velocity_error_mm_s"),
+    ("final bed: particles in another slab", "height_profile_distance"),
+    ("  constant velocity", "constant_velocity_height_profile_distance"),
+    ("  chaos floor", "chaos_floor_height_profile_distance"),
+    ("final bed area fraction, truth", "bed_area_fraction_truth"),
+    ("final bed area fraction error", "bed_area_fraction_error"),
+    ("  constant velocity", "constant_velocity_bed_area_fraction_error"),
+    ("  chaos floor", "chaos_floor_bed_area_fraction_error"),
+    ("final g(r) L1", "rdf_l1"),
+    ("  constant velocity", "constant_velocity_rdf_l1"),
+    ("  chaos floor", "chaos_floor_rdf_l1"),
+    ("final Sinkhorn, positions (L^2)", "sinkhorn_position_final"),
+    ("  chaos floor", "chaos_floor_sinkhorn_position_final"),
+    ("final Sinkhorn, velocities ((m/s)^2)", "sinkhorn_velocity_final"),
+    ("  chaos floor", "chaos_floor_sinkhorn_velocity_final"),
+    ("final MMD^2, positions", "mmd_position_final"),
+    ("  constant velocity", "constant_velocity_mmd_position_final"),
+    ("  chaos floor", "chaos_floor_mmd_position_final"),
+    ("final MMD^2, velocities", "mmd_velocity_final"),
+    ("  constant velocity", "constant_velocity_mmd_velocity_final"),
+    ("  chaos floor", "chaos_floor_mmd_velocity_final"),
+)
+
 
 def table(report) -> str:
     """A Markdown table: one column per split, mean ± std over its trajectories."""
@@ -219,7 +267,8 @@ def table(report) -> str:
         "| metric | " + " | ".join(f"{s} ({report['splits'][s]['summary']['n_trajectories']})" for s in splits) + " |",
         "| --- |" + " --- |" * len(splits),
     ]
-    for label, key in ROWS:
+    with_statistics = any("rdf_l1" in report["splits"][s]["summary"] for s in splits)
+    for label, key in ROWS + (STATISTICS_ROWS if with_statistics else ()):
         cells = []
         for s in splits:
             summary = report["splits"][s]["summary"]
