@@ -269,7 +269,12 @@ def test_evaluate_is_atomic_and_render_checks_what_it_is_given(tiny_dataset, tra
     capsys.readouterr()
     assert main(evaluate) == 2 and "exists and is not empty" in capsys.readouterr().err
     assert main(evaluate + ["--overwrite"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["error_curves_test.png", "metrics.json", "predictions"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "error_curves_test.png",
+        "metrics.json",
+        "predictions",
+        "statistics_test.png",
+    ]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging left behind
     other = tmp_path / "precious"
     other.mkdir()
