@@ -170,3 +170,42 @@ def test_failing_writes_leave_no_partial_file(tmp_path, monkeypatch):
         with pytest.raises(OSError, match="disk full"):
             R.save_rollout_animation(tmp_path / "anim", truth, prediction, radius, dpi=30)
     assert _files(tmp_path) == ["old.png"]
+
+
+def _disk_width_px(path, fig):
+    """Width in box units (of the panel's data scale) of the one coloured disk in a single-panel PNG."""
+    rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    ax = fig.axes[0]
+    (x0, _), (x1, _) = ax.transData.transform([(0, 0), (1, 0)])
+    box = ax.get_window_extent()  # the panel only, not the colour bar
+    top = rgb.shape[0] - int(box.y1)
+    panel = rgb[top : top + int(box.height), int(box.x0) : int(box.x1)]
+    colourful = (panel.max(axis=-1) - panel.min(axis=-1)) > 40  # the colour map's colours; lines are grey
+    cols = np.nonzero(colourful.any(axis=0))[0]
+    return (cols.max() - cols.min() + 1) / (x1 - x0)
+
+
+@pytest.mark.parametrize("toward_camera", [0.0, 0.8])
+def test_spheres_are_drawn_in_perspective_to_scale(tmp_path, toward_camera):
+    # A sphere of radius 0.3 at the cube's centre keeps its size (the camera's scale is 1 at the
+    # centre's depth); moved 0.8 towards the camera it grows by 5 / (5 - depth).
+    az, el = np.radians(30.0), np.radians(20.0)
+    direction = np.array([np.sin(az), -np.cos(az), 0.0])  # horizontal direction towards the camera
+    truth = (toward_camera * direction)[None, None]
+    depth = np.cos(el) * toward_camera
+    path = tmp_path / "sphere.png"
+    fig = R.frame_grid(truth, None, np.array([0.3]), frames=(0,), frame_dt=None, dpi=100, panel_size=4.0, path=path)
+    assert _disk_width_px(path, fig) == pytest.approx(0.6 * 5.0 / (5.0 - depth), rel=0.04)
+
+
+def test_3d_animation_and_grid_of_spheres(tmp_path):
+    truth, prediction, radius = _trajectory(t=6, n=20)
+    lift = lambda x: np.concatenate([x[..., :1], 0.3 * np.sin(x[..., :1] * 5), x[..., 1:]], axis=-1)
+    result = R.save_rollout_animation(tmp_path / "r", lift(truth), lift(prediction), radius, mp4=False, dpi=30)
+    with Image.open(result["gif"]) as gif:
+        assert gif.n_frames == 6 and gif.size == (int(9.0 * 30), int(4.2 * 30))
+    R.frame_grid(lift(truth), lift(prediction), radius, frames=(0, -1), dpi=30, path=tmp_path / "g.png")
+    with Image.open(tmp_path / "g.png") as png:
+        assert png.size == (round((2 * 2.4 + 1.2) * 30), round((2 * 2.4 + 0.4) * 30))
+    with pytest.raises(ValueError, match="same dimension"):
+        R.frame_grid(lift(truth), prediction, radius, frames=(0,))

@@ -9,10 +9,19 @@ needed and no global backend state is touched (figures embed in notebooks
 all the same).
 
 Positions are normalised by the box half-size ``L`` (the box is
-``[-1, 1]^2``), shape ``(T, N, 2)``; radii ``(N,)`` are normalised too and
+``[-1, 1]^D``), shape ``(T, N, D)``; radii ``(N,)`` are normalised too and
 particles are drawn as circles of their true radius in box units. A
 ``mask`` ``(N,)`` hides padding particles. Pass ``box_half_size`` (m) to label
 radii in millimetres.
+
+Spheres (``D = 3``) are drawn in one perspective view of the cube, from the
+front, a little above and to the side, with its edges drawn: every sphere is
+a disc of its projected radius, painted back to front and darkened with
+depth. One view keeps the truth and prediction panels side by side at a
+readable size, and the bed's height and layering read directly off it; three
+orthogonal projections would need three panels per frame, and in each of them
+the spheres of a settled bed overlap their neighbours in depth anyway, so the
+depth cue (order and shading) is what tells them apart.
 """
 
 from __future__ import annotations
@@ -107,13 +116,59 @@ def _prepare(trajectories: Sequence[Any], radius, mask):
     out = []
     for traj in trajectories:
         traj = np.asarray(traj, np.float64)
-        if traj.ndim != 3 or traj.shape[1] != n or traj.shape[2] != 2:
-            raise ValueError(f"trajectories must have shape (T, {n}, 2) (normalised 2-D positions), got {traj.shape}")
+        if traj.ndim != 3 or traj.shape[1] != n or traj.shape[2] not in (2, 3):
+            raise ValueError(
+                f"trajectories must have shape (T, {n}, D) with D = 2 or 3 (normalised positions), got {traj.shape}"
+            )
         out.append(traj[:, real])
     lengths = {t.shape[0] for t in out}
     if len(lengths) != 1:
         raise ValueError(f"trajectories must have the same number of frames, got {sorted(lengths)}")
+    if len({t.shape[2] for t in out}) != 1:
+        raise ValueError(f"trajectories must have the same dimension, got {[t.shape[2] for t in out]}")
     return out, radius[real]
+
+
+# The 3-D camera: turned _AZIMUTH degrees about the vertical, raised _ELEVATION degrees, at
+# _DISTANCE box half-sizes from the centre; at the centre's depth one box unit stays one unit.
+_AZIMUTH, _ELEVATION, _DISTANCE = 30.0, 20.0, 5.0
+_DEPTH_SHADE = 0.55  # the farthest sphere keeps this fraction of its colour's brightness
+
+
+def _camera(points):
+    """Screen ``(..., 2)`` coordinates, scale ``(...)`` and depth ``(...)`` (larger: nearer) of ``(..., 3)`` points."""
+    az, el = np.radians(_AZIMUTH), np.radians(_ELEVATION)
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    # Turn about the vertical so the camera looks along -y' ...
+    right = np.cos(az) * x + np.sin(az) * y
+    toward = np.sin(az) * x - np.cos(az) * y
+    # ... then raise it by the elevation: higher points come nearer, nearer points show lower.
+    up = np.cos(el) * z - np.sin(el) * toward
+    depth = np.cos(el) * toward + np.sin(el) * z
+    scale = _DISTANCE / (_DISTANCE - depth)
+    return np.stack([right * scale, up * scale], axis=-1), scale, depth
+
+
+_CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+_CUBE_EDGES = [(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_CUBE_CORNERS[i] != _CUBE_CORNERS[j]) == 1]
+
+
+def _view(positions, radius, colours, norm, cmap):
+    """What one frame draws: ``(offsets (N, 2), diameters (N,), face colours (N, 4))``, back to front.
+
+    2-D: the positions and diameters themselves. 3-D: the perspective view of the module
+    docstring, sorted far to near so nearer spheres cover farther ones.
+    """
+    rgba = matplotlib.colormaps[cmap](norm(colours))
+    if positions.shape[-1] == 2:
+        return positions, 2.0 * radius, rgba
+    screen, scale, depth = _camera(positions)
+    order = np.argsort(depth, kind="stable")
+    nearness = (depth + np.sqrt(3.0)) / (2.0 * np.sqrt(3.0))
+    shade = _DEPTH_SHADE + (1.0 - _DEPTH_SHADE) * np.clip(nearness, 0.0, 1.0)
+    rgba = rgba.copy()
+    rgba[:, :3] *= shade[:, None]
+    return screen[order], (2.0 * radius * scale)[order], rgba[order]
 
 
 def _radius_scale(radius, box_half_size):
@@ -130,38 +185,61 @@ def _radius_norm(values) -> Normalize:
     return Normalize(lo, hi)
 
 
-def _box_axes(ax, label: str | None) -> None:
-    ax.set_xlim(-1 - _PAD, 1 + _PAD)
-    ax.set_ylim(-1 - _PAD, 1 + _PAD)
+def _box_axes(ax, label: str | None, dim: int = 2) -> None:
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])
     for spine in ax.spines.values():
         spine.set_visible(False)
-    ax.add_patch(Rectangle((-1, -1), 2, 2, fill=False, edgecolor="black", linewidth=1.5, zorder=3))
+    if dim == 2:
+        ax.set_xlim(-1 - _PAD, 1 + _PAD)
+        ax.set_ylim(-1 - _PAD, 1 + _PAD)
+        ax.add_patch(Rectangle((-1, -1), 2, 2, fill=False, edgecolor="black", linewidth=1.5, zorder=3))
+    else:
+        corners, _, depth = _camera(_CUBE_CORNERS)
+        back = int(np.argmin(depth))  # edges at the farthest corner lie behind the spheres
+        for i, j in _CUBE_EDGES:
+            behind = back in (i, j)
+            ax.plot(
+                *corners[[i, j]].T,
+                color="grey" if behind else "black",
+                linewidth=0.8 if behind else 1.2,
+                linestyle="--" if behind else "-",
+                zorder=1 if behind else 3,
+            )
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        ax.set_xlim(lo[0] - _PAD, hi[0] + _PAD)
+        ax.set_ylim(lo[1] - _PAD, hi[1] + _PAD)
     if label:
         ax.set_title(label)
 
 
 def _particles(ax, positions, radius, colour_values, norm, cmap) -> EllipseCollection:
-    """Circles of diameter ``2 a`` in data units (``units="xy"``), coloured by radius."""
-    diameters = 2.0 * radius
+    """Circles of diameter ``2 a`` in data units (``units="xy"``; projected in 3-D), coloured by radius."""
+    offsets, diameters, faces = _view(positions, radius, colour_values, norm, cmap)
     collection = EllipseCollection(
         diameters,
         diameters,
         np.zeros_like(diameters),
         units="xy",
-        offsets=positions,
+        offsets=offsets,
         offset_transform=ax.transData,
-        cmap=cmap,
-        norm=norm,
+        facecolors=faces,
         edgecolors="black",
         linewidths=0.3,
         zorder=2,
     )
-    collection.set_array(colour_values)
     ax.add_collection(collection)
     return collection
+
+
+def _move_particles(collection, positions, radius, colour_values, norm, cmap) -> None:
+    offsets, diameters, faces = _view(positions, radius, colour_values, norm, cmap)
+    collection.set_offsets(offsets)
+    if positions.shape[-1] == 3:  # sizes, colours and drawing order change with depth
+        collection.set_widths(diameters)
+        collection.set_heights(diameters)
+        collection.set_facecolor(faces)
 
 
 def _time_label(frame: int, frame_dt: float | None, input_frames: int | None) -> str:
@@ -180,11 +258,12 @@ class _Scene:
         self.input_frames = input_frames
         colours, colour_label = _radius_scale(radius, box_half_size)
         norm = _radius_norm(colours)
+        self.style = (radius, colours, norm, cmap)
         self.fig = _new_figure(figsize, dpi, layout="constrained")
         axes = self.fig.subplots(1, len(panels), squeeze=False)[0]
         self.collections = []
         for ax, (label, traj) in zip(axes, panels):
-            _box_axes(ax, label)
+            _box_axes(ax, label, traj.shape[-1])
             self.collections.append(_particles(ax, traj[0], radius, colours, norm, cmap))
         self.fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), label=colour_label, shrink=0.85)
         self.title = self.fig.suptitle(_time_label(0, frame_dt, input_frames))
@@ -195,7 +274,7 @@ class _Scene:
 
     def update(self, frame: int):
         for collection, traj in zip(self.collections, self.trajectories):
-            collection.set_offsets(traj[frame])
+            _move_particles(collection, traj[frame], *self.style)
         self.title.set_text(_time_label(frame, self.frame_dt, self.input_frames))
         return [*self.collections, self.title]
 
@@ -236,8 +315,9 @@ def rollout_animation(
     """Side-by-side animation (ground truth | prediction) for notebooks.
 
     Args:
-      truth: ``(T, N, 2)`` normalised positions. prediction: the same shape,
-        or ``None`` for a single panel.
+      truth: ``(T, N, D)`` normalised positions, ``D = 2`` (disks) or 3
+        (spheres, in perspective). prediction: the same shape, or ``None``
+        for a single panel.
       radius: ``(N,)`` normalised radii (circles drawn to scale).
       mask: optional ``(N,)`` bool hiding padding particles.
       frame_dt: frame spacing in s for the title (``None``: frame numbers).
@@ -386,7 +466,7 @@ def frame_grid(
     end), each titled with its time.
 
     Args:
-      truth, prediction: ``(T, N, 2)`` normalised positions.
+      truth, prediction: ``(T, N, D)`` normalised positions (D = 2 or 3).
       radius: ``(N,)`` normalised radii. frames: frame indices.
       mask: optional ``(N,)`` bool. frame_dt: s per frame for the titles.
       box_half_size: ``L`` in m to label radii in mm.
@@ -418,7 +498,7 @@ def frame_grid(
     for r, (label, traj) in enumerate(zip(labels, trajectories)):
         for c, frame in enumerate(frames):
             ax = axes[r, c]
-            _box_axes(ax, _time_label(frame, frame_dt, None) if r == 0 else None)
+            _box_axes(ax, _time_label(frame, frame_dt, None) if r == 0 else None, traj.shape[-1])
             _particles(ax, traj[frame], radius, colours, norm, cmap)
             if c == 0:
                 ax.set_ylabel(label)

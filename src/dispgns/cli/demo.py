@@ -41,7 +41,17 @@ def register(subparsers) -> None:
         metavar="MM[,MM...]",
         help=f"radii in mm drawn for the particles (default {DEFAULT_RADII_MM}: unseen in training)",
     )
-    parser.add_argument("--frames", type=int, default=500, metavar="T", help="frames to simulate (default 500)")
+    parser.add_argument(
+        "--dim",
+        type=int,
+        choices=(2, 3),
+        default=2,
+        help="2: disks in the paper's 0.2 m square (default); 3: spheres in the 8 cm cube of "
+        "'dispgns generate --preset paper3d' (needs a 3-D model: --model PATH)",
+    )
+    parser.add_argument(
+        "--frames", type=int, metavar="T", help="frames to simulate (default 500 in 2-D, 200 in 3-D as paper3d)"
+    )
     parser.add_argument(
         "--out",
         default="dispgns-demo",
@@ -73,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
+    from dispgns.data.generate import PAPER3D_HALF_SIZE_M
     from dispgns.evaluation import chaos_floor_trajectories, predict_trajectories
     from dispgns.metrics import rollout_metrics
     from dispgns.physics import PhysicsConfig, PlacementError, sample_initial_state, simulate
@@ -84,24 +95,29 @@ def run(args: argparse.Namespace) -> int:
     # Refused before minutes of computing: an existing output needs --overwrite.
     check_output(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="demo")
     params, model_config, info = load_model_argument(args)
+    if model_config.dim != args.dim:
+        hint = " (no 3-D model ships yet: pass --model PATH to a 3-D run or model)" if args.dim == 3 else ""
+        raise CLIError(f"--dim {args.dim}: the model is {model_config.dim}-D{hint}")
+    if args.frames is None:
+        args.frames = 500 if args.dim == 2 else 200
     c = model_config.input_sequence_length
     if args.frames <= c:
         raise CLIError(f"--frames {args.frames}: expected more than C = {c} input frames")
     if args.stride < 1:
         raise CLIError(f"--stride {args.stride}: expected >= 1")
-    config = PhysicsConfig()
+    config = PhysicsConfig() if args.dim == 2 else PhysicsConfig(box_half_size=PAPER3D_HALF_SIZE_M)
     half, save_every = config.box_half_size, 15
     frame_dt = save_every * config.dt
     print(
         f"dispgns demo: seed {args.seed}, radii {', '.join(f'{r * 1e3:g}' for r in radii)} mm, "
-        f"{args.frames} frames ({args.frames * frame_dt:.2f} s); model: {info.get('source')}",
+        f"{args.frames} frames ({args.frames * frame_dt:.2f} s), {args.dim}-D; model: {info.get('source')}",
         flush=True,
     )
 
     timings = {}
     start = time.perf_counter()
     try:
-        state = sample_initial_state(jax.random.PRNGKey(args.seed), radii, config)
+        state = sample_initial_state(jax.random.PRNGKey(args.seed), radii, config, dim=args.dim)
     except (PlacementError, ValueError) as error:
         raise CLIError(f"--radii {args.radii}: {error}") from None
     truth = (
