@@ -211,3 +211,45 @@ def test_imports_check_times_and_missing_fields(tmp_path):
     )
     with pytest.raises(DatasetError, match=r"plain\.extxyz: frame 0: no 'radius' or 'diameter' column"):
         import_trajectory_files([stripped], "extxyz", tmp_path / "b")
+
+
+@pytest.mark.parametrize("fmt", ["extxyz", "gsd"])
+def test_export_of_a_rectangular_box_scales_by_the_length_scale_and_keeps_the_box(tmp_path, fmt):
+    # A container four times wider than tall: positions are stored divided by L = 0.1 m, not by the box.
+    half = (0.4, 0.1)
+    rng = np.random.default_rng(3)
+    position = np.stack([rng.uniform(-3.9, 3.9, (4, 5)), rng.uniform(-0.9, 0.9, (4, 5))], -1).astype(np.float32)
+    trajectory = Trajectory(position=position, radius=np.full(5, 0.04, np.float32))
+    (tmp_path / "data").mkdir()
+    write_split(tmp_path / "data" / "test.h5", [trajectory], bounds=((-4.0, 4.0), (-1.0, 1.0)))
+    write_metadata(
+        tmp_path / "data",
+        DatasetMetadata(
+            dim=2,
+            sequence_length=4,
+            frame_dt=15e-4,
+            save_every=15,
+            box_half_size=half,
+            length_scale=L,
+            connectivity_radius=0.2,
+            trajectory_counts={"test": 1},
+            radii={"test": radii_groups([(1, [0.004])])},
+            physics=PhysicsConfig(box_half_size=half).to_dict(),
+            has_initial_state=False,
+            particle_counts={"test": [5]},
+        ),
+    )
+    (written,) = export_trajectories(tmp_path / "data", tmp_path / "out", fmt)
+    info = json.loads((tmp_path / "out" / "export.json").read_text())
+    assert info["box_half_size_m"] == list(half) and info["length_scale_m"] == L
+    if fmt == "extxyz":
+        frames = ase_io.read(written, index=":")
+        xy = np.stack([f.positions[:, :2] for f in frames])
+        np.testing.assert_allclose(np.diag(frames[0].cell.array)[:2], [0.8, 0.2])
+        np.testing.assert_allclose(frames[0].arrays["radius"], 0.004)
+    else:
+        with hoomd.open(str(written), "r") as file:
+            xy = np.stack([f.particles.position[:, :2] for f in file])
+            np.testing.assert_allclose(file[0].configuration.box[:2], [0.8, 0.2])
+            np.testing.assert_allclose(file[0].particles.diameter, 0.008, rtol=1e-6)
+    np.testing.assert_allclose(xy, position.astype(np.float64) * L, atol=1e-8)

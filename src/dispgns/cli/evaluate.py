@@ -200,7 +200,7 @@ def _evaluate(args, params, model_config, info, metadata, splits, out: Path) -> 
             plot_statistics(
                 result["summary"],
                 frame_dt=metadata.frame_dt,
-                box_half_size=metadata.box_half_size,
+                box_half_size=metadata.length_scale,
                 title=f"{split}: suspension statistics (mean over {len(trajectories)} trajectories)",
                 path=out / f"statistics_{split}.png",
             )

@@ -82,25 +82,42 @@ def _check_fmt(fmt: str, known: Sequence[str]) -> None:
         raise ValueError(f"unknown format {fmt!r}, expected one of {list(known)}")
 
 
-def _si_frames(position: np.ndarray, box_half_size: float) -> np.ndarray:
+def _si_frames(position: np.ndarray, length_scale: float) -> np.ndarray:
     """``(T, N, D)`` normalised -> ``(T, N, 3)`` float64 metres (``z = 0`` in 2-D)."""
     t, n, d = position.shape
     out = np.zeros((t, n, 3))
-    out[..., :d] = position.astype(np.float64) * box_half_size
+    out[..., :d] = position.astype(np.float64) * length_scale
     return out
 
 
-def _si_radius(radius: np.ndarray, box_half_size: float) -> np.ndarray:
+def _si_radius(radius: np.ndarray, length_scale: float) -> np.ndarray:
     """``(N,)`` normalised float32 radii -> float64 m, from their shortest decimals (0.04 -> 0.004 m, not
     0.0039999999): a round trip through a file then gives back the same float32 values."""
-    return _shortest(radius) * box_half_size
+    return _shortest(radius) * length_scale
+
+
+def _scale_and_half_sizes(box_half_size, length_scale: float | None, dim: int) -> tuple[float, np.ndarray]:
+    """``(L, (D,) half-sizes in m)`` of a box given as one half-size (the square box, ``L`` by default) or one
+    per axis (then ``length_scale`` is required: positions are stored divided by ``L``, not by the box)."""
+    half = np.broadcast_to(np.asarray(box_half_size, np.float64), (dim,)).copy()
+    if length_scale is None:
+        if not np.all(half == half[0]):
+            raise ValueError(f"box_half_size {tuple(half)} differs per axis: give length_scale (L in m) as well")
+        length_scale = float(half[0])
+    return float(length_scale), half
 
 
 # ----------------------------------------------------------------------------- writers
 
 
 def write_extxyz(
-    path: str | os.PathLike, position: np.ndarray, radius: np.ndarray, *, box_half_size: float, frame_dt: float
+    path: str | os.PathLike,
+    position: np.ndarray,
+    radius: np.ndarray,
+    *,
+    box_half_size: float | Sequence[float],
+    frame_dt: float,
+    length_scale: float | None = None,
 ) -> Path:
     """Write one trajectory as a multi-frame extended XYZ file (OVITO and ASE read it).
 
@@ -108,23 +125,26 @@ def write_extxyz(
       path: the target file (written atomically).
       position: ``(T, N, D)`` normalised centres (positions / L), ``D`` 2 or 3.
       radius: ``(N,)`` normalised radii.
-      box_half_size: L in m.
+      box_half_size: the box's half-size in m, one for all axes or one per axis.
       frame_dt: time between frames in s.
+      length_scale: L in m, what positions and radii are divided by (default: ``box_half_size``, which
+        must then be the same on every axis).
 
     Each frame has species ``X``, ``pos`` in m, a ``radius`` column in m (OVITO's particle radius),
-    ``Lattice`` (``2L`` per axis; in 2-D the z extent is the largest diameter) with ``Origin``
-    ``-L`` (OVITO's cell origin), ``Time`` in s, ``frame``, ``dim`` and ``length_unit=m``.
+    ``Lattice`` (the box's full size per axis; in 2-D the z extent is the largest diameter) with ``Origin``
+    at its lower corner (OVITO's cell origin), ``Time`` in s, ``frame``, ``dim`` and ``length_unit=m``.
     """
     ase = _library("ase", "writing extended XYZ")
     ase_io = _library("ase.io", "writing extended XYZ")
     position, radius = np.asarray(position), np.asarray(radius)
     t, n, d = position.shape
-    radius_m = _si_radius(radius, box_half_size)
-    depth = 2 * box_half_size if d == 3 else 2 * float(radius_m.max())
-    cell = np.diag([2 * box_half_size, 2 * box_half_size, depth])
-    origin = np.array([-box_half_size, -box_half_size, -depth / 2])
+    scale, half = _scale_and_half_sizes(box_half_size, length_scale, d)
+    radius_m = _si_radius(radius, scale)
+    depth = 2 * half[2] if d == 3 else 2 * float(radius_m.max())
+    cell = np.diag([2 * half[0], 2 * half[1], depth])
+    origin = np.array([-half[0], -half[1], -depth / 2])
     images = []
-    for frame, xyz in enumerate(_si_frames(position, box_half_size)):
+    for frame, xyz in enumerate(_si_frames(position, scale)):
         atoms = ase.Atoms(numbers=np.zeros(n, int), positions=xyz, cell=cell, pbc=False)
         atoms.arrays["radius"] = radius_m
         atoms.info.update(Time=frame * frame_dt, frame=frame, dim=d, length_unit="m", Origin=origin)
@@ -139,34 +159,35 @@ def write_gsd(
     position: np.ndarray,
     radius: np.ndarray,
     *,
-    box_half_size: float,
+    box_half_size: float | Sequence[float],
     frame_dt: float,
     save_every: int = 1,
+    length_scale: float | None = None,
 ) -> Path:
     """Write one trajectory as a GSD file (HOOMD-blue's format; OVITO reads it too).
 
     Args: as :func:`write_extxyz`; ``save_every`` numbers the frames' ``configuration/step``.
 
     Frames hold ``particles/position`` (float32 m, ``z = 0`` in 2-D), ``particles/diameter`` (m), one type
-    ``A``, HOOMD's centred box ``[2L, 2L, 2L or 0, 0, 0, 0]`` with ``dimensions`` D, and the log entries
+    ``A``, HOOMD's centred box (full sizes ``[Lx, Ly, Lz or 0, 0, 0, 0]``) with ``dimensions`` D, and the log entries
     ``dispgns/time_s`` and ``dispgns/length_unit_m`` (1: metres).
     """
     hoomd = _library("gsd.hoomd", "writing GSD")
     position, radius = np.asarray(position), np.asarray(radius)
     t, n, d = position.shape
+    scale, half = _scale_and_half_sizes(box_half_size, length_scale, d)
     with atomic_path(path) as temporary:
         with hoomd.open(name=str(temporary), mode="w") as file:
-            for frame, xyz in enumerate(_si_frames(position, box_half_size)):
+            for frame, xyz in enumerate(_si_frames(position, scale)):
                 snapshot = hoomd.Frame()
                 snapshot.configuration.step = frame * save_every
                 snapshot.configuration.dimensions = d
-                side = 2 * box_half_size
-                snapshot.configuration.box = [side, side, side if d == 3 else 0.0, 0, 0, 0]
+                snapshot.configuration.box = [2 * half[0], 2 * half[1], 2 * half[2] if d == 3 else 0.0, 0, 0, 0]
                 snapshot.particles.N = n
                 snapshot.particles.types = ["A"]
                 snapshot.particles.typeid = np.zeros(n, np.uint32)
                 snapshot.particles.position = xyz.astype(np.float32)
-                snapshot.particles.diameter = (2 * _si_radius(radius, box_half_size)).astype(np.float32)
+                snapshot.particles.diameter = (2 * _si_radius(radius, scale)).astype(np.float32)
                 snapshot.log[GSD_TIME] = np.array([frame * frame_dt])
                 snapshot.log[GSD_LENGTH_UNIT] = np.array([1.0])
                 file.append(snapshot)
@@ -174,7 +195,13 @@ def write_gsd(
 
 
 def write_vtu_series(
-    path: str | os.PathLike, position: np.ndarray, radius: np.ndarray, *, box_half_size: float, frame_dt: float
+    path: str | os.PathLike,
+    position: np.ndarray,
+    radius: np.ndarray,
+    *,
+    box_half_size: float | Sequence[float],
+    frame_dt: float,
+    length_scale: float | None = None,
 ) -> Path:
     """Write one trajectory as a ParaView file series: ``STEM_00000.vtu``, ... and ``path`` (``STEM.vtu.series``).
 
@@ -190,11 +217,12 @@ def write_vtu_series(
         raise ValueError(f"{path}: a VTU series file must end in .vtu.series")
     stem = path.name[: -len(".vtu.series")]
     position, radius = np.asarray(position), np.asarray(radius)
-    t, n, _ = position.shape
+    t, n, d = position.shape
+    scale, _ = _scale_and_half_sizes(box_half_size, length_scale, d)
     cells = [("vertex", np.arange(n).reshape(-1, 1))]
-    radius_m = _si_radius(radius, box_half_size)
+    radius_m = _si_radius(radius, scale)
     entries = []
-    for frame, xyz in enumerate(_si_frames(position, box_half_size)):
+    for frame, xyz in enumerate(_si_frames(position, scale)):
         name = f"{stem}_{frame:05d}.vtu"
         mesh = meshio.Mesh(xyz, cells, point_data={"radius": radius_m})
         with atomic_path(path.parent / name) as temporary:
@@ -209,13 +237,15 @@ def write_trajectory_file(
     fmt: str,
     trajectory: Trajectory,
     *,
-    box_half_size: float,
+    box_half_size: float | Sequence[float],
     frame_dt: float,
     save_every: int = 1,
+    length_scale: float | None = None,
 ) -> Path:
-    """Write ``trajectory`` (normalised units) to ``path`` in ``fmt`` (one of :data:`EXPORT_FORMATS`)."""
+    """Write ``trajectory`` (normalised units) to ``path`` in ``fmt`` (one of :data:`EXPORT_FORMATS`); the box
+    and ``length_scale`` as in :func:`write_extxyz`."""
     _check_fmt(fmt, EXPORT_FORMATS)
-    kwargs: dict[str, Any] = dict(box_half_size=box_half_size, frame_dt=frame_dt)
+    kwargs: dict[str, Any] = dict(box_half_size=box_half_size, frame_dt=frame_dt, length_scale=length_scale)
     if fmt == "gsd":
         return write_gsd(path, trajectory.position, trajectory.radius, save_every=save_every, **kwargs)
     writer = write_extxyz if fmt == "extxyz" else write_vtu_series
@@ -640,8 +670,12 @@ def export_trajectories(
         data = {source.stem: read_split(source)}
         if splits is not None and list(splits) != [source.stem]:
             raise DatasetError(f"{source.name}: holds the split {source.stem!r} only, not {list(splits)}")
+    length_scale = None
     if metadata is not None:
-        box_half_size = metadata.box_half_size if box_half_size is None else box_half_size
+        if box_half_size is None:
+            # The stored positions are divided by the length scale, which differs from the box in a
+            # rectangular container (``wide4``: half-sizes (0.4, 0.1) m, L = 0.1 m).
+            box_half_size, length_scale = metadata.box_half_size, metadata.length_scale
         frame_dt = metadata.frame_dt if frame_dt is None else frame_dt
     if box_half_size is None or frame_dt is None:
         raise DatasetError(
@@ -666,6 +700,7 @@ def export_trajectories(
                     box_half_size=box_half_size,
                     frame_dt=frame_dt,
                     save_every=save_every,
+                    length_scale=length_scale,
                 )
                 records.append({"file": name, "split": split, "index": index, **trajectories[index].attrs})
                 written.append(Path(out_dir) / name)
@@ -674,7 +709,8 @@ def export_trajectories(
             "source": str(source.absolute()),
             "length_unit": "m",
             "time_unit": "s",
-            "box_half_size_m": box_half_size,
+            "box_half_size_m": list(box_half_size) if isinstance(box_half_size, tuple) else box_half_size,
+            "length_scale_m": box_half_size if length_scale is None else length_scale,
             "frame_dt_s": frame_dt,
             "trajectories": records,
         }
