@@ -102,7 +102,7 @@ def test_spec_replace():
     assert spec.splits["test"] == (RadiiGroup(6, (0.004, 0.006)),)
     assert spec.splits["test_unseen"] == (RadiiGroup(5, (0.005,)),)
     assert spec.connectivity_radius == 0.24
-    with pytest.raises(ValueError, match="radii below L/2"):
+    with pytest.raises(ValueError, match="does not fit the box"):
         spec.replace(radii_m=[0.06])
     with pytest.raises(ValueError, match="at least one trajectory"):
         DatasetSpec(splits={"train": [(0, [0.004])]})
