@@ -2,6 +2,7 @@
 the maintained readers see, and clear errors naming the file, frame and field."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -127,19 +128,16 @@ DUMP = """ITEM: TIMESTEP
 {step}
 ITEM: NUMBER OF ATOMS
 3
-ITEM: BOX BOUNDS ff ff ff
-0.0 200.0
-0.0 200.0
--0.5 0.5
+ITEM: BOX BOUNDS {box}
 ITEM: ATOMS id type x y z diameter
 {rows}
 """
 
 
-def _dump(frames):
+def _dump(frames, box="ff ff ff\n0.0 200.0\n0.0 200.0\n-0.5 0.5"):
     text = ""
     for step, rows in frames:
-        text += DUMP.format(step=step, rows="\n".join(" ".join(str(v) for v in row) for row in rows))
+        text += DUMP.format(step=step, box=box, rows="\n".join(" ".join(str(v) for v in row) for row in rows))
     return text
 
 
@@ -213,32 +211,41 @@ def test_imports_check_times_and_missing_fields(tmp_path):
         import_trajectory_files([stripped], "extxyz", tmp_path / "b")
 
 
-@pytest.mark.parametrize("fmt", ["extxyz", "gsd"])
-def test_export_of_a_rectangular_box_scales_by_the_length_scale_and_keeps_the_box(tmp_path, fmt):
-    # A container four times wider than tall: positions are stored divided by L = 0.1 m, not by the box.
-    half = (0.4, 0.1)
-    rng = np.random.default_rng(3)
-    position = np.stack([rng.uniform(-3.9, 3.9, (4, 5)), rng.uniform(-0.9, 0.9, (4, 5))], -1).astype(np.float32)
-    trajectory = Trajectory(position=position, radius=np.full(5, 0.04, np.float32))
-    (tmp_path / "data").mkdir()
-    write_split(tmp_path / "data" / "test.h5", [trajectory], bounds=((-4.0, 4.0), (-1.0, 1.0)))
+def _rectangular_dataset(directory, half, n_frames=4, count=5, seed=3):
+    """A wide4-like dataset: the box's half-sizes ``half`` (m) per axis, positions and radii divided by L = 0.1 m
+    (the vertical half-size), ``bounds`` = half / L."""
+    rng = np.random.default_rng(seed)
+    bounds = tuple((-float(f"{h / L:.12g}"), float(f"{h / L:.12g}")) for h in half)
+    position = np.stack([rng.uniform(lo + 0.1, hi - 0.1, (n_frames, count)) for lo, hi in bounds], -1)
+    trajectory = Trajectory(position=position.astype(np.float32), radius=np.full(count, 0.04, np.float32))
+    directory.mkdir()
+    write_split(directory / "test.h5", [trajectory], bounds=bounds)
     write_metadata(
-        tmp_path / "data",
+        directory,
         DatasetMetadata(
-            dim=2,
-            sequence_length=4,
+            dim=len(half),
+            sequence_length=n_frames,
             frame_dt=15e-4,
             save_every=15,
             box_half_size=half,
             length_scale=L,
-            connectivity_radius=0.2,
+            connectivity_radius=0.16,
             trajectory_counts={"test": 1},
             radii={"test": radii_groups([(1, [0.004])])},
             physics=PhysicsConfig(box_half_size=half).to_dict(),
             has_initial_state=False,
-            particle_counts={"test": [5]},
+            particle_counts={"test": [count]},
         ),
     )
+    return trajectory, bounds
+
+
+@pytest.mark.parametrize("fmt", ["extxyz", "gsd"])
+def test_export_of_a_rectangular_box_scales_by_the_length_scale_and_keeps_the_box(tmp_path, fmt):
+    # A container four times wider than tall: positions are stored divided by L = 0.1 m, not by the box.
+    half = (0.4, 0.1)
+    trajectory, _ = _rectangular_dataset(tmp_path / "data", half)
+    position = trajectory.position
     (written,) = export_trajectories(tmp_path / "data", tmp_path / "out", fmt)
     info = json.loads((tmp_path / "out" / "export.json").read_text())
     assert info["box_half_size_m"] == list(half) and info["length_scale_m"] == L
@@ -253,3 +260,85 @@ def test_export_of_a_rectangular_box_scales_by_the_length_scale_and_keeps_the_bo
             np.testing.assert_allclose(file[0].configuration.box[:2], [0.8, 0.2])
             np.testing.assert_allclose(file[0].particles.diameter, 0.008, rtol=1e-6)
     np.testing.assert_allclose(xy, position.astype(np.float64) * L, atol=1e-8)
+
+
+@pytest.mark.parametrize("fmt", ["extxyz", "gsd"])
+@pytest.mark.parametrize("half", [(0.4, 0.1), (0.3, 0.2, 0.1)])
+def test_rectangular_box_export_then_import_gives_the_same_arrays_and_bounds(tmp_path, fmt, half):
+    trajectory, bounds = _rectangular_dataset(tmp_path / "data", half)
+    written = export_trajectories(tmp_path / "data", tmp_path / "out", fmt)
+    metadata = import_trajectory_files(written, fmt, tmp_path / "back", split="test")
+    # As generate --preset wide4 records the box: half-sizes per axis in m, L the vertical one, bounds h / L.
+    assert metadata.box_half_size == half and metadata.length_scale == L
+    assert metadata.bounds == bounds and metadata.physics_config.box_half_size == half
+    assert metadata.connectivity_radius == pytest.approx(4 * 0.004 / L)
+    back, read = load_dataset(tmp_path / "back")
+    assert back.bounds == bounds and back.length_scale == L
+    # One float32 rounding of the largest coordinate (|x| up to h / L = 4 here).
+    np.testing.assert_allclose(read["test"][0].position, trajectory.position, atol=1.2e-7 * max(half) / L, rtol=0)
+    np.testing.assert_array_equal(read["test"][0].radius, trajectory.radius)
+    # A box given on the command line must agree with the file's.
+    with pytest.raises(DatasetError, match=re.escape(f"'box' has half-sizes {list(half)} m, but [0.1, 0.1")):
+        import_trajectory_files(written, fmt, tmp_path / "bad", box_half_size=0.1)
+    assert not (tmp_path / "bad").exists()
+
+
+def test_lammps_dump_with_a_rectangular_box_and_a_chosen_length_scale(tmp_path, capsys):
+    # Millimetres, box [0, 800] x [0, 200] mm: half-sizes (0.4, 0.1) m; by default L = 0.1 m (the height).
+    frames = [(0, [(1, 1, 50.0, 60.0, 0.0, 4.0), (2, 1, 750.0, 100.0, 0.0, 8.0), (3, 1, 400.0, 190.0, 0.0, 4.0)])]
+    box = "ff ff ff\n0.0 800.0\n0.0 200.0\n-0.5 0.5"
+    path = tmp_path / "wide.dump"
+    path.write_text(_dump(frames, box=box))
+    assert main(["import", "lammps-dump", str(path), "--out", str(tmp_path / "a"), "--length-unit", "1e-3"]) == 0
+    assert "box half-size (0.4, 0.1) m, L = 0.1 m" in capsys.readouterr().out
+    metadata, read = load_dataset(tmp_path / "a")
+    assert metadata.box_half_size == (0.4, 0.1) and metadata.length_scale == 0.1
+    assert metadata.bounds == ((-4.0, 4.0), (-1.0, 1.0))
+    np.testing.assert_allclose(read["train"][0].position[0], [[-3.5, -0.4], [3.5, 0.0], [0.0, 0.9]], atol=1e-6)
+    np.testing.assert_allclose(read["train"][0].radius, [0.02, 0.04, 0.02], rtol=1e-6)
+    # --L chooses the length scale: positions, radii and bounds are in units of 0.2 m.
+    args = ["import", "lammps-dump", str(path), "--out", str(tmp_path / "b"), "--length-unit", "1e-3", "--L", "0.2"]
+    assert main(args) == 0
+    metadata, read = load_dataset(tmp_path / "b")
+    assert metadata.length_scale == 0.2 and metadata.bounds == ((-2.0, 2.0), (-0.5, 0.5))
+    np.testing.assert_allclose(read["train"][0].position[0], [[-1.75, -0.2], [1.75, 0.0], [0.0, 0.45]], atol=1e-6)
+    # A file without a box: --box gives it per axis (centred on 0).
+    xyz = tmp_path / "nobox.extxyz"
+    xyz.write_text("2\nProperties=species:S:1:pos:R:3:radius:R:1\nX -0.35 -0.04 0.0 0.002\nX 0.35 0.0 0.0 0.004\n")
+    with pytest.raises(DatasetError, match=r"nobox\.extxyz: the file has no box; give its half-size"):
+        import_trajectory_files([xyz], "extxyz", tmp_path / "c", length_unit=1.0)
+    assert (
+        main(["import", "extxyz", str(xyz), "--out", str(tmp_path / "c"), "--length-unit", "1", "--box", "0.4,0.1"])
+        == 0
+    )
+    metadata, read = load_dataset(tmp_path / "c")
+    assert metadata.box_half_size == (0.4, 0.1) and metadata.bounds == ((-4.0, 4.0), (-1.0, 1.0))
+    np.testing.assert_allclose(read["train"][0].position[0], [[-3.5, -0.4], [3.5, 0.0]], atol=1e-6)
+
+
+def test_tilted_boxes_are_refused_naming_the_file_and_field(tmp_path):
+    frames = [(0, [(1, 1, 50.0, 60.0, 0.0, 4.0), (2, 1, 150.0, 100.0, 0.0, 8.0), (3, 1, 100.0, 20.0, 0.0, 8.0)])]
+    path = tmp_path / "tilted.dump"
+    path.write_text(_dump(frames, box="xy xz yz ff ff ff\n0.0 200.0 10.0\n0.0 200.0 0.0\n-0.5 0.5 0.0"))
+    with pytest.raises(DatasetError, match=r"tilted\.dump: frame 0: 'ITEM: BOX BOUNDS' .*tilted \(triclinic\)"):
+        import_trajectory_files([path], "lammps-dump", tmp_path / "a", length_unit=1e-3)
+
+    snapshot = hoomd.Frame()
+    snapshot.configuration.box = [0.2, 0.2, 0.2, 0.5, 0, 0]
+    snapshot.particles.N = 1
+    snapshot.particles.types = ["A"]
+    snapshot.particles.position = np.zeros((1, 3), np.float32)
+    snapshot.particles.diameter = np.full(1, 0.01, np.float32)
+    with hoomd.open(name=str(tmp_path / "tilted.gsd"), mode="w") as file:
+        file.append(snapshot)
+    with pytest.raises(DatasetError, match=r"tilted\.gsd: frame 0: 'configuration/box' .*tilted \(triclinic\)"):
+        import_trajectory_files([tmp_path / "tilted.gsd"], "gsd", tmp_path / "b", length_unit=1.0)
+
+    xyz = tmp_path / "tilted.extxyz"
+    xyz.write_text(
+        '1\nLattice="0.2 0.0 0.0 0.05 0.2 0.0 0.0 0.0 0.2" Properties=species:S:1:pos:R:3:radius:R:1\n'
+        "X 0.1 0.1 0.1 0.005\n"
+    )
+    with pytest.raises(DatasetError, match=r"tilted\.extxyz: frame 0: 'Lattice' .*tilted \(triclinic\)"):
+        import_trajectory_files([xyz], "extxyz", tmp_path / "c", length_unit=1.0)
+    assert not any((tmp_path / d).exists() for d in "abc")

@@ -2,13 +2,14 @@
 (ParaView), LAMMPS dump text (in only).
 
 Files written here hold **SI metres and seconds**: centres ``position * L``, per-particle radius (XYZ column
-``radius``, VTU point data ``radius``) or diameter (GSD ``particles/diameter``), the box ``[-L, L]^D`` (XYZ
-``Lattice`` + ``Origin``, GSD's centred ``configuration/box``, VTU none) and each frame's time (XYZ ``Time``,
-GSD log ``dispgns/time_s``, the VTU series' ``time``). 2-D trajectories get ``z = 0`` (GSD
-``configuration/dimensions = 2``). Readers return a :class:`~dispgns.data.format.Trajectory` in normalised
-units (positions and radii / L); what a file does not say (its length unit, the box, the dimension) must be
-given explicitly, and every problem (a missing field, a particle count that changes, a particle outside the
-box, a non-finite value, a time step that disagrees) raises :class:`~dispgns.data.format.DatasetError` naming
+``radius``, VTU point data ``radius``) or diameter (GSD ``particles/diameter``), the box per axis (``[-L, L]^D``
+for a square one; XYZ ``Lattice`` + ``Origin``, GSD's centred ``configuration/box``, VTU none) and each
+frame's time (XYZ ``Time``, GSD log ``dispgns/time_s``, the VTU series' ``time``). 2-D trajectories get
+``z = 0`` (GSD ``configuration/dimensions = 2``). Readers return a :class:`~dispgns.data.format.Trajectory`
+in normalised units (positions and radii / L); what a file does not say (its length unit, the box, the
+dimension) must be given explicitly. Boxes may be rectangular (one width per axis), not tilted (triclinic).
+Every problem (a missing field, a particle count that changes, a particle outside the box, a non-finite
+value, a time step that disagrees, a tilted box) raises :class:`~dispgns.data.format.DatasetError` naming
 the file, the frame and the field.
 
 The maintained readers and writers do the work: ``ase.io`` for extended XYZ, ``gsd.hoomd`` for GSD,
@@ -17,8 +18,8 @@ The maintained readers and writers do the work: ``ase.io`` for extended XYZ, ``g
 These libraries are optional (``pip install dispgns[formats]``) and imported only when used.
 
 Precision: GSD and VTU store float32 metres, extended XYZ 8 decimals of metres; a round trip returns the
-normalised float32 positions to within 1e-7 (1e-8 m at L = 0.1 m), radii exactly for radii given in whole
-micrometres.
+normalised float32 positions to one float32 rounding (1e-7 in the box [-1, 1]^D, 1e-8 m at L = 0.1 m), radii
+exactly for radii given in whole micrometres.
 """
 
 from __future__ import annotations
@@ -276,21 +277,27 @@ class FileTrajectory:
         self,
         *,
         length_unit: float | None = None,
-        box_half_size: float | None = None,
+        box_half_size: float | Sequence[float] | None = None,
+        length_scale: float | None = None,
         dim: int | None = None,
         frame_dt: float | None = None,
-    ) -> tuple[Trajectory, float]:
-        """``(Trajectory in normalised units, L in m)``; arguments override or complete the file.
+    ) -> tuple[Trajectory, tuple[float, ...], float]:
+        """``(Trajectory in normalised units, the box's half-sizes (D,) in m, L in m)``; arguments override or
+        complete the file.
 
         Args:
           length_unit: metres per file length unit (required when the file does not say).
-          box_half_size: L in m, for a file without a box (the box is then ``[-L, L]^D``); with a box in the
+          box_half_size: the box's half-size in m, one for every axis or one per axis: required for a file
+            without a box (or give ``length_scale`` alone: the box is then ``[-L, L]^D``); with a box in the
             file, it must agree.
+          length_scale: ``L`` in m, what positions and radii are divided by (default: the box's half-size
+            along the last, vertical axis, as :func:`~dispgns.data.generate_dataset` does; the half-size of
+            a square or cubic box).
           dim: 2 or 3 (default: the file's, else 2 when every ``z`` is 0, else 3).
           frame_dt: the time between frames in s, checked against the file's times when it has them.
 
-        The file's box must be a cube (the same width on every used axis); positions are re-centred on
-        it, so the box becomes ``[-1, 1]^D``.
+        The file's box may be rectangular (per-axis widths) but not tilted; positions are re-centred on it,
+        so the box becomes ``bounds = ((-h_d / L, h_d / L) for each axis d)``, ``[-1, 1]^D`` for a cube.
         """
         where = self.where
         unit = self.length_unit if length_unit is None else length_unit
@@ -302,6 +309,8 @@ class FileTrajectory:
             raise DatasetError(f"{where}: the file does not state its length unit; give it (metres per file unit)")
         if not (math.isfinite(unit) and unit > 0):
             raise DatasetError(f"{where}: length unit {unit!r}, expected a number > 0 (metres per file unit)")
+        if length_scale is not None and not (math.isfinite(length_scale) and length_scale > 0):
+            raise DatasetError(f"{where}: length scale L = {length_scale!r} m, expected a number > 0")
         position, radius = self.position, self.radius
         if dim is None:
             dim = self.dim if self.dim is not None else (2 if np.all(position[..., 2] == 0) else 3)
@@ -312,23 +321,38 @@ class FileTrajectory:
             raise DatasetError(
                 f"{where}: frame {frame} particle {particle}: 'z' is {position[frame, particle, 2]}, expected 0 in 2-D"
             )
+        given = None
+        if box_half_size is not None:
+            given = np.asarray(box_half_size, np.float64).reshape(-1)
+            if given.size not in (1, dim) or not np.all(np.isfinite(given) & (given > 0)):
+                raise DatasetError(
+                    f"{where}: box half-size {given.tolist()} m, expected one number > 0 or {dim} (one per axis)"
+                )
+            given = np.broadcast_to(given, (dim,))
         if self.box is not None:
             box = np.asarray(self.box, np.float64)[:dim] * unit
             widths = box[:, 1] - box[:, 0]
-            if not np.allclose(widths, widths[0], rtol=1e-6) or widths[0] <= 0:
-                raise DatasetError(
-                    f"{where}: 'box' is {box.tolist()} m, expected a cube (the same width > 0 on every axis)"
-                )
-            half = float(widths[0] / 2)
-            if box_half_size is not None and not math.isclose(box_half_size, half, rel_tol=1e-6):
-                raise DatasetError(f"{where}: 'box' has half-width {half} m, but L = {box_half_size} m was given")
+            if not np.all(widths > 0):
+                raise DatasetError(f"{where}: 'box' is {box.tolist()} m, expected a width > 0 on every axis")
+            half = widths / 2
+            if given is not None and not np.allclose(given, half, rtol=1e-6, atol=0):
+                raise DatasetError(f"{where}: 'box' has half-sizes {half.tolist()} m, but {given.tolist()} m was given")
             centre = box.mean(axis=1)
-        elif box_half_size is None:
-            raise DatasetError(f"{where}: the file has no box; give its half-size L in m (the box is [-L, L]^D)")
+        elif given is not None:
+            half, centre = given.copy(), np.zeros(dim)
+        elif length_scale is not None:
+            half, centre = np.full(dim, float(length_scale)), np.zeros(dim)
         else:
-            half, centre = float(box_half_size), np.zeros(dim)
-        scaled = (position[..., :dim] * unit - centre) / half
-        outside = np.abs(scaled) > 1.0 + BOX_TOLERANCE
+            raise DatasetError(
+                f"{where}: the file has no box; give its half-size in m, one or one per axis "
+                f"(the box is centred on 0), or the length scale L (the box is then [-L, L]^D)"
+            )
+        # Half-sizes from float32 files (GSD) at 12 significant digits, so 0.4 stays 0.4 in metadata.json.
+        half = np.array([float(f"{h:.12g}") for h in half])
+        scale = float(half[-1]) if length_scale is None else float(length_scale)
+        limit = half / scale
+        scaled = (position[..., :dim] * unit - centre) / scale
+        outside = np.abs(scaled) > limit + BOX_TOLERANCE
         if np.any(outside):
             frame, particle, axis = (int(i) for i in np.argwhere(outside)[0])
             raise DatasetError(
@@ -345,14 +369,14 @@ class FileTrajectory:
                     f"{where}: frame {frame}: 'time' step is {steps[bad[0]]:.6g} s, expected {frame_dt:.6g} s "
                     f"(save_every * dt)"
                 )
-        scaled_radius = radius * unit / half
+        scaled_radius = radius * unit / scale
         trajectory = Trajectory(
             position=scaled.astype(np.float32),
             radius=scaled_radius.astype(np.float32),
             particle_type=np.zeros((position.shape[1],), np.int32),
             attrs={"source_file": Path(where).name},
         )
-        return trajectory, half
+        return trajectory, tuple(float(h) for h in half), scale
 
 
 def _check_frames(where: str, frames: list[tuple[np.ndarray, np.ndarray]], field: str) -> tuple[np.ndarray, np.ndarray]:
@@ -410,7 +434,10 @@ def read_extxyz(path: str | os.PathLike) -> FileTrajectory:
     if first.cell.rank > 0:
         cell = first.cell.array
         if not np.allclose(cell, np.diag(np.diag(cell))):
-            raise DatasetError(f"{where}: frame 0: 'Lattice' is not orthogonal, expected a rectangular box")
+            raise DatasetError(
+                f"{where}: frame 0: 'Lattice' is {cell.tolist()}, a tilted (triclinic) cell: not supported, "
+                f"expected a rectangular box (a diagonal Lattice)"
+            )
         origin = np.asarray(first.info.get("Origin", np.zeros(3)), np.float64).reshape(-1)
         box = np.stack([origin, origin + np.diag(cell)], axis=1)
     unit = first.info.get("length_unit")
@@ -465,7 +492,10 @@ def read_gsd(path: str | os.PathLike) -> FileTrajectory:
                 f"{where}: frame {frame}: 'configuration/box' is {box.tolist()}, expected {boxes[0].tolist()}"
             )
         if np.any(box[3:] != 0):
-            raise DatasetError(f"{where}: frame {frame}: 'configuration/box' tilts {box[3:].tolist()}, expected 0")
+            raise DatasetError(
+                f"{where}: frame {frame}: 'configuration/box' has tilt factors xy, xz, yz = {box[3:].tolist()}: "
+                f"tilted (triclinic) boxes are not supported, expected 0"
+            )
     half = boxes[0][:3] / 2
     box = np.stack([-half, half], axis=1)
     return FileTrajectory(
@@ -508,7 +538,11 @@ def read_lammps_dump(path: str | os.PathLike) -> FileTrajectory:
             need(lines[i + 2].startswith("ITEM: NUMBER OF ATOMS"), f"line {i + 3}: expected 'ITEM: NUMBER OF ATOMS'")
             n = int(lines[i + 3])
             need(lines[i + 4].startswith("ITEM: BOX BOUNDS"), f"line {i + 5}: expected 'ITEM: BOX BOUNDS'")
-            need("xy" not in lines[i + 4], "the box is triclinic, expected an orthogonal box")
+            need(
+                not any(tilt in lines[i + 4].split() for tilt in ("xy", "xz", "yz")),
+                f"'ITEM: BOX BOUNDS' is {lines[i + 4].strip()!r}: tilted (triclinic) boxes are not supported, "
+                f"expected an orthogonal box ('ITEM: BOX BOUNDS' without xy xz yz)",
+            )
             box = np.array([[float(v) for v in lines[i + 5 + k].split()[:2]] for k in range(3)])
             header = lines[i + 8]
             need(header.startswith("ITEM: ATOMS"), f"line {i + 9}: expected 'ITEM: ATOMS ...'")
@@ -564,7 +598,8 @@ def import_trajectory_files(
     *,
     split: str = "train",
     length_unit: float | None = None,
-    box_half_size: float | None = None,
+    box_half_size: float | Sequence[float] | None = None,
+    length_scale: float | None = None,
     dim: int | None = None,
     save_every: int = 15,
     dt: float | None = None,
@@ -577,7 +612,8 @@ def import_trajectory_files(
       fmt: one of :data:`IMPORT_FORMATS`.
       out_dir: the dataset directory: new, empty, or an earlier import of the same format.
       split: the split to write.
-      length_unit, box_half_size, dim: see :meth:`FileTrajectory.normalised` (what the files do not say).
+      length_unit, box_half_size, length_scale, dim: see :meth:`FileTrajectory.normalised` (what the files
+        do not say; the box may be rectangular).
       save_every: Euler steps between frames; with ``dt`` (the Euler step in s, default the
         :class:`~dispgns.physics.PhysicsConfig` default) it gives the frame spacing, checked against
         the files' times when they have them.
@@ -585,7 +621,8 @@ def import_trajectory_files(
 
     Returns:
       The dataset's :class:`~dispgns.data.format.DatasetMetadata` (no initial state: the physics cannot
-      be re-run).
+      be re-run): ``box_half_size`` one number for a square or cubic box, else one per axis (m);
+      ``length_scale`` L (m) and ``bounds`` (units of L) as :func:`~dispgns.data.generate_dataset` writes them.
     """
     from dispgns.data.importers import write_imported
     from dispgns.physics import PhysicsConfig
@@ -596,16 +633,21 @@ def import_trajectory_files(
     if not (isinstance(save_every, int) and save_every >= 1):
         raise ValueError(f"save_every must be an integer >= 1, got {save_every!r}")
     dt = PhysicsConfig().dt if dt is None else float(dt)
-    trajectories, half = [], None
+    trajectories, half, scale = [], None, None
     for path in paths:
-        trajectory, file_half = read_trajectory_file(path, fmt).normalised(
-            length_unit=length_unit, box_half_size=box_half_size, dim=dim, frame_dt=save_every * dt
+        trajectory, file_half, file_scale = read_trajectory_file(path, fmt).normalised(
+            length_unit=length_unit,
+            box_half_size=box_half_size,
+            length_scale=length_scale,
+            dim=dim,
+            frame_dt=save_every * dt,
         )
         if half is None:
-            half = float(f"{file_half:.12g}")
-        elif not math.isclose(file_half, half, rel_tol=1e-6):
+            half, scale = file_half, float(f"{file_scale:.12g}")
+        elif len(file_half) != len(half) or not np.allclose(file_half, half, rtol=1e-6, atol=0):
             raise DatasetError(
-                f"{Path(path).name}: box half-size {file_half} m, expected {half} m like {Path(paths[0]).name}"
+                f"{Path(path).name}: box half-sizes {list(file_half)} m, expected {list(half)} m like "
+                f"{Path(paths[0]).name}"
             )
         if trajectories and (trajectory.n_frames, trajectory.dim) != (trajectories[0].n_frames, trajectories[0].dim):
             raise DatasetError(
@@ -613,15 +655,18 @@ def import_trajectory_files(
                 f"{trajectories[0].n_frames} frames in {trajectories[0].dim}-D like {Path(paths[0]).name}"
             )
         trajectories.append(trajectory)
+    # One number for a square or cubic box (the paper's datasets), one per axis otherwise (like wide4).
+    physics_box = half[0] if len(set(half)) == 1 else half
     return write_imported(
         trajectories,
         out_dir,
         split=split,
-        physics=PhysicsConfig(box_half_size=half, dt=dt),
+        physics=PhysicsConfig(box_half_size=physics_box, dt=dt),
         save_every=save_every,
         source=f"imported {fmt}",
         source_name=", ".join(Path(p).name for p in paths),
         overwrite=overwrite,
+        length_scale=scale,
     )
 
 

@@ -159,9 +159,9 @@ def _statistics_of(metadata: DatasetMetadata | None) -> dict:
     return {name: getattr(metadata, name) for name in ("vel_mean", "vel_std", "acc_mean", "acc_std")}
 
 
-def _radii_list_m(trajectories: list[Trajectory], box_half_size: float) -> list[float]:
+def _radii_list_m(trajectories: list[Trajectory], length_scale: float) -> list[float]:
     """The distinct radii in m (rounded to 0.1 um, which undoes the float32 normalisation)."""
-    values = np.concatenate([t.radius.astype(np.float64) for t in trajectories]) * box_half_size
+    values = np.concatenate([t.radius.astype(np.float64) for t in trajectories]) * length_scale
     return [float(r) for r in np.unique(np.round(values, 7))]
 
 
@@ -226,15 +226,19 @@ def write_imported(
     source: str,
     source_name: str,
     overwrite: bool = False,
+    length_scale: float | None = None,
 ) -> DatasetMetadata:
     """Write imported ``trajectories`` (normalised units, no initial state) as split ``split`` of ``out_dir``.
 
     ``out_dir`` is new, empty, or an earlier import of the same ``source``, whose metadata is updated
-    (dimension, frames, L and ``save_every`` must agree). Returns the dataset's metadata.
+    (dimension, frames, box, L and ``save_every`` must agree). ``length_scale`` is L in m, what the
+    positions and radii are divided by (default: ``physics.height``, the box's vertical half-size); the box
+    in units of L is ``bounds = ((-h_d / L, h_d / L) for each axis d)``. Returns the dataset's metadata.
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}, expected one of {list(SPLITS)}")
     dim, n_frames = trajectories[0].dim, trajectories[0].n_frames
+    length_scale = physics.height if length_scale is None else float(length_scale)
     path = source_name
     out_dir = Path(out_dir).absolute()
     existing = None
@@ -258,6 +262,7 @@ def write_imported(
             ("dim", existing.dim, dim),
             ("sequence_length", existing.sequence_length, n_frames),
             ("box_half_size", existing.box_half_size, physics.box_half_size),
+            ("length_scale", existing.length_scale, length_scale),
             ("save_every", existing.save_every, save_every),
         ):
             if have != want:
@@ -270,7 +275,7 @@ def write_imported(
     radii = {s: list(g) for s, g in existing.radii.items()} if existing else {}
     particles = dict(existing.particle_counts or {}) if existing else {}
     counts[split] = len(trajectories)
-    group = radii_groups([(len(trajectories), _radii_list_m(trajectories, physics.box_half_size))])[0]
+    group = radii_groups([(len(trajectories), _radii_list_m(trajectories, length_scale))])[0]
     group["source_file"] = source_name
     radii[split] = [group]
     particles[split] = [t.n_particles for t in trajectories]
@@ -283,7 +288,8 @@ def write_imported(
         frame_dt=save_every * physics.dt,
         save_every=save_every,
         box_half_size=physics.box_half_size,
-        connectivity_radius=float(f"{4.0 * largest / physics.box_half_size:.12g}"),
+        connectivity_radius=float(f"{4.0 * largest / length_scale:.12g}"),
+        length_scale=length_scale,
         trajectory_counts={s: counts[s] for s in ordered},
         radii={s: radii[s] for s in ordered},
         physics=physics.to_dict(),
@@ -295,7 +301,7 @@ def write_imported(
 
     if existing is None:
         with staged_directory(out_dir) as staging:
-            write_split(staging / split_filename(split), trajectories)
+            write_split(staging / split_filename(split), trajectories, bounds=metadata.bounds)
             write_metadata(staging, metadata)
         return metadata
 
@@ -303,7 +309,7 @@ def write_imported(
     # split file is removed again if the metadata cannot be updated.
     target = out_dir / split_filename(split)
     added = not target.exists()
-    write_split(target, trajectories)
+    write_split(target, trajectories, bounds=metadata.bounds)
     try:
         write_metadata(out_dir, metadata)
     except BaseException:
