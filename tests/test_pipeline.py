@@ -314,3 +314,62 @@ def test_damaged_files_are_reported_not_raised(tiny_dataset, tmp_path, capsys):
         f["00000"].create_group("position")
     with pytest.raises(Exception, match="field 'position' is not an HDF5 dataset"):
         read_split(damaged / "valid.h5")
+
+
+def _network_leaves(run_or_model):
+    import jax
+
+    from dispgns.training.checkpoint import load_params
+
+    params, _, _ = load_params(run_or_model)
+    return jax.tree_util.tree_leaves(params)
+
+
+def test_init_from_starts_at_the_models_parameters_and_normalisation(tiny_dataset, trained, tmp_path):
+    # One step with a vanishing learning rate: the exported model is the state the run started from.
+    run = tmp_path / "fine"
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--init-from", str(trained / "model"),
+                 "--set", "train.learning_rate=1e-30", "--set", "train.min_learning_rate=0",
+                 "--steps", "1", "--no-progress"]) == 0  # fmt: skip
+    for a, b in zip(_network_leaves(run / "model"), _network_leaves(trained / "model"), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-20)
+    config = json.loads((run / "config.json").read_text())
+    assert config["init_from"]["model"] == str(trained / "model")
+    assert config["model"]["latent_size"] == 16  # the model's network, not the default configuration's
+    stored = json.loads((trained / "config.json").read_text())["normalization"]
+    for k, v in stored.items():
+        np.testing.assert_allclose(config["normalization"][k], v, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_init_from_trains_on_from_the_model(tiny_dataset, trained, tmp_path):
+    run = tmp_path / "fine"
+    args = ["--set", "train.log_every=20", "--set", "train.validate_every=1000", "--set", "train.learning_rate=1e-4",
+            "--steps", "20", "--no-progress"]  # fmt: skip
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--init-from", str(trained), *args]) == 0
+    first = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    fresh = tmp_path / "fresh"
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(fresh), *TRAIN[:6], *args]) == 0
+    scratch = [json.loads(line) for line in (fresh / "log.jsonl").read_text().splitlines()]
+    loss = next(r["loss"] for r in first if r["kind"] == "train")
+    loss_scratch = next(r["loss"] for r in scratch if r["kind"] == "train")
+    # Measured: 1.26 against 2.10 (a fresh network's loss is about D = 2, the variance of standardised targets).
+    assert loss < 0.75 * loss_scratch, (loss, loss_scratch)
+    assert json.loads((run / "model" / "model.json").read_text())["record"]["init_from"]["model"] == str(trained)
+
+
+def test_init_from_refuses_another_network_and_a_changed_start_on_resume(tiny_dataset, trained, tmp_path, capsys):
+    run = tmp_path / "fine"
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--init-from", str(trained),
+                 "--set", "model.latent_size=32", "--steps", "1", "--no-progress"])  # fmt: skip
+    assert code == 2 and not run.exists()
+    assert "model.latent_size = 32 (the model has 16)" in capsys.readouterr().err
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--steps", "1", *TRAIN[:6],
+                 "--no-progress"]) == 0  # fmt: skip
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--resume", "--init-from", str(trained),
+                 "--no-progress"])  # fmt: skip
+    assert code == 2
+    assert "from random weights" in capsys.readouterr().err
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "x"), "--init-from", "no-such-model",
+                 "--no-progress"])  # fmt: skip
+    assert code == 2 and "no shipped model 'no-such-model'" in capsys.readouterr().err

@@ -8,7 +8,7 @@ import os
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from dispgns.cli import CLIError
 from dispgns.cli._common import (
@@ -69,6 +69,15 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--steps", type=int, metavar="N", help="train up to step N (train.num_steps)")
     parser.add_argument("--resume", action="store_true", help="continue the run in RUN from its latest checkpoint")
+    parser.add_argument(
+        "--init-from",
+        metavar="MODEL",
+        help="start a new run from a trained model's parameters and normalisation instead of random weights "
+        "(fine-tuning): an exported model directory, a run directory (its exported model, else its latest "
+        "checkpoint), or the name of a shipped model (e.g. 'paper'). The network is the model's (--config/--set "
+        "may change training fields and model.keep_inside_box only); the optimiser and the learning-rate "
+        "schedule start afresh",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing run in RUN")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
@@ -226,6 +235,57 @@ def resumed_configs(stored_model, stored_train, explicit: dict[str, dict[str, An
     return stored_model, train
 
 
+class _InitialModel(NamedTuple):
+    params: dict
+    model_config: Any
+    normalization: dict
+    record: dict
+
+
+# Model fields a fine-tuning run may set: they change what is done with the network, not its weights.
+_FINE_TUNE_MODEL_FIELDS = ("keep_inside_box", "bounds", "kernels", "matmul_dtype")
+
+
+def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _InitialModel:
+    """The parameters, network configuration and normalisation that ``--init-from SOURCE`` starts from."""
+    import numpy as np
+
+    from dispgns.pretrained import pretrained_path
+    from dispgns.training.checkpoint import CheckpointError, load_params
+
+    path = Path(source)
+    if not path.exists() and "/" not in source:
+        try:
+            path = pretrained_path(source)
+        except FileNotFoundError as error:
+            raise CLIError(f"--init-from {source}: neither a directory nor a shipped model ({error})") from None
+    try:
+        params, model_config, info = load_params(path)
+    except CheckpointError as error:
+        raise CLIError(f"--init-from {source}: {error}") from None
+    fixed = sorted(set(explicit["model"]) - set(_FINE_TUNE_MODEL_FIELDS))
+    differ = [f for f in fixed if explicit["model"][f] != getattr(model_config, f)]
+    if differ:
+        raise CLIError(
+            f"--init-from {source}: the model's network is fixed by its parameters, but the configuration sets "
+            + "; ".join(
+                f"model.{f} = {explicit['model'][f]!r} (the model has {getattr(model_config, f)!r})" for f in differ
+            )
+            + f"; only {', '.join('model.' + f for f in _FINE_TUNE_MODEL_FIELDS)} may change"
+        )
+    changes = {f: v for f, v in explicit["model"].items() if f in _FINE_TUNE_MODEL_FIELDS}
+    if "keep_inside_box" not in changes:
+        # Trained as the network alone (the position guard is a rollout-time choice of the export).
+        changes["keep_inside_box"] = False
+    try:
+        model_config = dataclasses.replace(model_config, **changes)
+    except (TypeError, ValueError) as error:
+        raise CLIError(f"--init-from {source}: invalid model config: {error}") from None
+    normalization = {k: np.asarray(v, np.float32) for k, v in params["normalization"].items()}
+    record = {"model": source, "source": info.get("source", str(path)), "steps": info.get("record", {}).get("steps")}
+    return _InitialModel(params, model_config, normalization, record)
+
+
 # ----------------------------------------------------------------------------- output directory
 
 
@@ -327,6 +387,10 @@ def run(args: argparse.Namespace) -> int:
     train_trajectories = splits["train"]
 
     model_config, train_config, explicit = resolve_configs(args, metadata.connectivity_radius)
+    initial = None
+    if args.init_from and not args.resume:
+        initial = _initial_model(args.init_from, explicit)
+        model_config = initial.model_config
     if args.resume:
         if not (run_dir / CONFIG_FILE).is_file():
             raise CLIError(f"{run_dir}: no run to resume ({CONFIG_FILE} not found); start one without --resume")
@@ -336,9 +400,19 @@ def run(args: argparse.Namespace) -> int:
         except CheckpointError as error:
             raise CLIError(str(error)) from None
         model_config, train_config = resumed_configs(stored_model, stored_train, explicit, run_dir)
+        if args.init_from and stored.get("init_from", {}).get("model") != args.init_from:
+            raise CLIError(
+                f"{run_dir / CONFIG_FILE}: --init-from {args.init_from} on resume, but the run was started "
+                f"{'from ' + repr(stored['init_from']['model']) if 'init_from' in stored else 'from random weights'}; "
+                "a resumed run continues from its own checkpoint (drop --init-from)"
+            )
     else:
         _check_fresh_run_dir(run_dir, overwrite=args.overwrite)
-        normalization = compute_normalization(train_trajectories, noise_std=train_config.noise_std)
+        if initial is not None:
+            # The network was trained on inputs standardised with these statistics: keep them.
+            normalization = initial.normalization
+        else:
+            normalization = compute_normalization(train_trajectories, noise_std=train_config.noise_std)
     if model_config.dim != metadata.dim:
         raise CLIError(
             f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, but the model has dim = {model_config.dim}"
@@ -369,8 +443,15 @@ def run(args: argparse.Namespace) -> int:
         "length_scale": metadata.length_scale,
     }
     config = run_config(model_config, train_config, normalization, dataset_info)
+    if initial is not None:
+        config["init_from"] = initial.record
+    elif args.resume and "init_from" in stored:
+        config["init_from"] = stored["init_from"]
     init_key, key = jax.random.split(jax.random.key(train_config.seed))
     state = create_train_state(init_key, compute, train_config, normalization)
+    if initial is not None:
+        # Adam's moments start at zero whatever the weights: only the parameters change.
+        state = state.replace(params=initial.params)
     primary = parallel is None or parallel.is_primary  # the one process that writes files other than checkpoints
     if parallel is not None:
         state = parallel.replicate(state)
@@ -412,7 +493,13 @@ def run(args: argparse.Namespace) -> int:
     if first >= last:
         progress.write(f"run is already at step {first} >= {last}; nothing to train (raise --steps to continue)")
     elif primary and not args.resume:
-        progress.write(_plan(args, explicit, state.params, last - first))
+        if initial is not None:
+            progress.write(
+                f"fine-tuning {initial.record['source']} for {last - first:,} steps; the time per step measured "
+                "here follows after the first steps. Ctrl-C checkpoints; --resume continues"
+            )
+        else:
+            progress.write(_plan(args, explicit, state.params, last - first))
     timer = _StepTimer(first, last, progress.write if primary else None)
 
     extra_loggers = _make_loggers(args, run_dir, config) if primary else LoggerGroup([])
@@ -458,6 +545,8 @@ def run(args: argparse.Namespace) -> int:
         "dataset": dataset_info,
         "last_validation": result.last_validation,
     }
+    if "init_from" in config:
+        record["init_from"] = config["init_from"]
     if result.interrupted:
         record["interrupted"] = True
     params = state.params if parallel is None else parallel.local(state.params)
