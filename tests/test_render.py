@@ -209,3 +209,43 @@ def test_3d_animation_and_grid_of_spheres(tmp_path):
         assert png.size == (round((2 * 2.4 + 1.2) * 30), round((2 * 2.4 + 0.4) * 30))
     with pytest.raises(ValueError, match="same dimension"):
         R.frame_grid(lift(truth), prediction, radius, frames=(0,))
+
+
+def test_wide_box_is_drawn_to_its_aspect_with_panels_stacked(tmp_path):
+    """A container 4x wider than tall: its walls, limits and pixels keep 4:1; a disk near the right wall shows."""
+    bounds = ((-4.0, 4.0), (-1.0, 1.0))
+    truth = np.array([[[3.5, -0.5]], [[3.5, -0.6]]])
+    path = tmp_path / "wide.png"
+    fig = R.frame_grid(truth, truth, np.array([0.4]), frames=(0, 1), frame_dt=None, bounds=bounds, dpi=50, path=path)
+    axes = [ax for ax in fig.axes if ax.get_title()]  # the panels, not the colour bar
+    assert len(axes) == 4  # one column: frame 0 truth, prediction, frame 1 truth, prediction
+    assert [ax.get_title() for ax in axes[:2]] == ["ground truth, frame 0", "prediction, frame 0"]
+    for ax in axes:
+        assert ax.get_xlim() == pytest.approx((-4.04, 4.04))
+        assert ax.get_ylim() == pytest.approx((-1.04, 1.04))
+        (x0, y0), (x1, y1) = ax.transData.transform([(-4, -1), (4, 1)])
+        assert (x1 - x0) / (y1 - y0) == pytest.approx(4.0, rel=1e-6)
+        (wall,) = ax.patches
+        assert (wall.get_x(), wall.get_y(), wall.get_width(), wall.get_height()) == (-4.0, -1.0, 8.0, 2.0)
+    # Panels stacked above each other, each as wide as the box and its margins over their height.
+    first, second = (ax.get_window_extent() for ax in axes[:2])
+    assert second.y1 < first.y0
+    assert first.width == pytest.approx(8.08 / 2.08 * first.height, rel=0.01)
+    # The disk at x = 3.5 is drawn where it is, beyond the square [-1, 1]^2.
+    rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    cx, cy = axes[0].transData.transform((3.5, -0.5))
+    pixel = rgb[int(round(rgb.shape[0] - cy)), int(round(cx))]
+    assert (pixel.max() - pixel.min()) > 40  # the colour map's colour, not white or black
+
+    result = R.save_rollout_animation(
+        tmp_path / "wide", truth, truth, np.array([0.4]), bounds=bounds, mp4=False, dpi=20
+    )
+    with Image.open(result["gif"]) as gif:
+        width = min(R.WIDE_WIDTH_IN, 3.0 * 8.08 / 2.08)
+        assert gif.size == (int((width + 1.2) * 20), int((2 * (width * 2.08 / 8.08 + 0.35) + 0.45) * 20))
+    square = R.frame_grid(truth[:, :, :] / 4, None, np.array([0.1]), frames=(0,), bounds=((-1, 1), (-1, 1)))
+    assert square.axes[0].get_xlim() == pytest.approx((-1.04, 1.04))
+    with pytest.raises(ValueError, match="bounds must be 2 pairs"):
+        R.frame_grid(truth, None, np.array([0.4]), frames=(0,), bounds=((4.0, -4.0), (-1.0, 1.0)))
+    with pytest.raises(ValueError, match="bounds must be 2 pairs"):
+        R.frame_grid(truth, None, np.array([0.4]), frames=(0,), bounds=((-4.0, 4.0),))

@@ -273,3 +273,47 @@ def test_one_learned_step_at_ten_thousand_particles_needs_no_quadratic_memory():
     assert scratch < 128 * 2**20, scratch / 2**20  # 55 MB measured (2026-12-02)
     out = np.asarray(compiled(params, frames, radius))
     assert np.all(np.isfinite(out))
+
+
+def test_render_draws_the_dataset_box(tmp_path):
+    """dispgns render draws a wide dataset's own box (bounds from metadata.json), panels stacked to its aspect."""
+    import json
+
+    from PIL import Image
+
+    from dispgns.cli import main
+    from dispgns.data.format import Trajectory, write_metadata, write_split
+    from dispgns.render import WIDE_WIDTH_IN
+
+    # Two disks falling near the side walls of the wide4 box, far beyond the paper's square.
+    x0 = np.array([[-0.37, 0.05], [0.36, -0.02]])
+    fall = np.linspace(0.0, 0.01, 8)[:, None, None] * np.array([0.0, -1.0])
+    position = ((x0[None] + fall) / 0.1).astype(np.float32)
+    trajectory = Trajectory(
+        position=position,
+        radius=np.full(2, 0.05, np.float32),
+        particle_type=np.zeros(2, np.int32),
+        initial_position=x0,
+        initial_velocity=np.zeros((2, 2)),
+        initial_radius=np.full(2, 0.005),
+    )
+    metadata = _wide_metadata(sequence_length=8)
+    data = tmp_path / "wide"
+    data.mkdir()
+    write_split(data / "test.h5", [trajectory], box_half_size=0.1, bounds=metadata.bounds)
+    write_metadata(data, dataclasses.replace(metadata, particle_counts={"test": [2]}))
+    # A "prediction" that is the truth: what is drawn, not the model, is under test here.
+    predicted = tmp_path / "test_pred.h5"
+    write_split(predicted, [Trajectory(position=position, radius=trajectory.radius)], predicted=True)
+    out = tmp_path / "pictures"
+    args = ["render", "--data", str(data), "--split", "test", "--predictions", str(predicted), "--out", str(out)]
+    assert main([*args, "--no-mp4", "--stride", "1"]) == 0
+    assert json.loads((out / "render.json").read_text())["bounds"] == [[-4.0, 4.0], [-1.0, 1.0]]
+    aspect = 8.08 / 2.08  # the box and its margins
+    width = min(WIDE_WIDTH_IN, 2.4 * aspect)
+    with Image.open(out / "rollout_grid.png") as png:  # 5 frames x (truth, prediction) in one column, dpi 100
+        assert png.size == (round((width + 1.2) * 100), round((10 * (width / aspect + 0.35) + 0.2) * 100))
+    width = min(WIDE_WIDTH_IN, 3.0 * aspect)
+    with Image.open(out / "rollout.gif") as gif:  # truth above prediction, dpi 80
+        assert gif.n_frames == 8
+        assert gif.size == (int((width + 1.2) * 80), int((2 * (width / aspect + 0.35) + 0.45) * 80))

@@ -8,11 +8,18 @@ non-interactive Agg canvas and never go through ``pyplot``, so no display is
 needed and no global backend state is touched (figures embed in notebooks
 all the same).
 
-Positions are normalised by the box half-size ``L`` (the box is
-``[-1, 1]^D``), shape ``(T, N, D)``; radii ``(N,)`` are normalised too and
-particles are drawn as circles of their true radius in box units. A
-``mask`` ``(N,)`` hides padding particles. Pass ``box_half_size`` (m) to label
-radii in millimetres.
+Positions are normalised by the length scale ``L`` (the box is ``bounds``,
+by default ``[-1, 1]^D``), shape ``(T, N, D)``; radii ``(N,)`` are normalised
+too and particles are drawn as circles of their true radius in box units. A
+``mask`` ``(N,)`` hides padding particles. Pass ``box_half_size`` (``L`` in m)
+to label radii in millimetres, and ``bounds`` (per axis ``(low, high)`` in
+units of ``L``) to draw a rectangular box: a container more than twice as wide
+as tall (:data:`WIDE_ASPECT`) is drawn with its panels stacked, truth above
+prediction, at most :data:`WIDE_WIDTH_IN` inches wide, instead of side by side.
+
+Every frame of an animation moves one :class:`~matplotlib.collections.EllipseCollection`
+per panel (new offsets only, in 2-D), so drawing 10^4 disks costs one
+collection draw, not 10^4 patches (timed by ``benchmarks/render.py``).
 
 Spheres (``D = 3``) are drawn in one perspective view of the cube, from the
 front, a little above and to the side, with its edges drawn: every sphere is
@@ -44,6 +51,8 @@ from matplotlib.patches import Rectangle
 from dispgns.files import atomic_path
 
 __all__ = [
+    "WIDE_ASPECT",
+    "WIDE_WIDTH_IN",
     "ffmpeg_executable",
     "frame_grid",
     "plot_error_curves",
@@ -56,6 +65,11 @@ __all__ = [
 ]
 
 _PAD = 0.04  # margin around the box, in box units
+
+# A box drawn more than WIDE_ASPECT times as wide as tall gets its panels stacked (side by side,
+# a 16:1 container would be a thin line in each half of the figure), WIDE_WIDTH_IN inches wide.
+WIDE_ASPECT = 2.0
+WIDE_WIDTH_IN = 16.0
 
 
 # ----------------------------------------------------------------------------
@@ -153,6 +167,43 @@ _CUBE_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (
 _CUBE_EDGES = [(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_CUBE_CORNERS[i] != _CUBE_CORNERS[j]) == 1]
 
 
+def _box(bounds, dim: int) -> np.ndarray:
+    """``(D, 2)`` per-axis ``(low, high)`` of the box in units of ``L``; ``None``: ``[-1, 1]^D``."""
+    if bounds is None:
+        return np.tile([-1.0, 1.0], (dim, 1))
+    try:
+        box = np.asarray(bounds, np.float64)
+    except (TypeError, ValueError):
+        box = None
+    if box is None or box.shape != (dim, 2) or not np.all(np.isfinite(box)) or np.any(box[:, 1] <= box[:, 0]):
+        raise ValueError(
+            f"bounds must be {dim} pairs (low, high) with low < high, in units of L, for {dim}-D positions; "
+            f"got {bounds!r}"
+        )
+    return box
+
+
+def _corners(box: np.ndarray) -> np.ndarray:
+    """The 8 corners of a 3-D box, in the order of :data:`_CUBE_CORNERS`."""
+    return box[:, 0] + (_CUBE_CORNERS + 1.0) / 2.0 * (box[:, 1] - box[:, 0])
+
+
+def _limits(box: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Axis limits ``(x, y)`` of a panel: the box (projected in 3-D) and a margin."""
+    if box.shape[0] == 2:
+        lo, hi = box[:, 0], box[:, 1]
+    else:
+        screen = _camera(_corners(box))[0]
+        lo, hi = screen.min(axis=0), screen.max(axis=0)
+    return (lo[0] - _PAD, hi[0] + _PAD), (lo[1] - _PAD, hi[1] + _PAD)
+
+
+def _aspect(box: np.ndarray) -> float:
+    """Width over height of a panel."""
+    (x0, x1), (y0, y1) = _limits(box)
+    return (x1 - x0) / (y1 - y0)
+
+
 def _view(positions, radius, colours, norm, cmap):
     """What one frame draws: ``(offsets (N, 2), diameters (N,), face colours (N, 4))``, back to front.
 
@@ -185,18 +236,21 @@ def _radius_norm(values) -> Normalize:
     return Normalize(lo, hi)
 
 
-def _box_axes(ax, label: str | None, dim: int = 2) -> None:
+def _box_axes(ax, label: str | None, box: np.ndarray) -> None:
+    """Equal aspect, no ticks, the box's walls drawn, limits the box and a margin."""
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])
     for spine in ax.spines.values():
         spine.set_visible(False)
-    if dim == 2:
-        ax.set_xlim(-1 - _PAD, 1 + _PAD)
-        ax.set_ylim(-1 - _PAD, 1 + _PAD)
-        ax.add_patch(Rectangle((-1, -1), 2, 2, fill=False, edgecolor="black", linewidth=1.5, zorder=3))
+    xlim, ylim = _limits(box)
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    if box.shape[0] == 2:
+        (x0, x1), (y0, y1) = box
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="black", linewidth=1.5, zorder=3))
     else:
-        corners, _, depth = _camera(_CUBE_CORNERS)
+        corners, _, depth = _camera(_corners(box))
         back = int(np.argmin(depth))  # edges at the farthest corner lie behind the spheres
         for i, j in _CUBE_EDGES:
             behind = back in (i, j)
@@ -207,9 +261,6 @@ def _box_axes(ax, label: str | None, dim: int = 2) -> None:
                 linestyle="--" if behind else "-",
                 zorder=1 if behind else 3,
             )
-        lo, hi = corners.min(axis=0), corners.max(axis=0)
-        ax.set_xlim(lo[0] - _PAD, hi[0] + _PAD)
-        ax.set_ylim(lo[1] - _PAD, hi[1] + _PAD)
     if label:
         ax.set_title(label)
 
@@ -249,23 +300,42 @@ def _time_label(frame: int, frame_dt: float | None, input_frames: int | None) ->
     return text
 
 
-class _Scene:
-    """Side-by-side panels of particle trajectories, updated frame by frame."""
+def _animation_figsize(box: np.ndarray, n_panels: int) -> tuple[float, float]:
+    """Panels side by side in 9 x 4.2 inches; a wide box's panels stacked, :data:`WIDE_WIDTH_IN` wide at most."""
+    aspect = _aspect(box)
+    if aspect <= WIDE_ASPECT:
+        return (9.0, 4.2)
+    width = min(WIDE_WIDTH_IN, 3.0 * aspect)  # 3 inches of height per panel until the width is capped
+    return (width + 1.2, n_panels * (width / aspect + 0.35) + 0.45)
 
-    def __init__(self, panels, radius, *, frame_dt, input_frames, box_half_size, cmap, figsize, dpi):
+
+class _Scene:
+    """Panels of particle trajectories (side by side, or stacked for a wide box), updated frame by frame."""
+
+    def __init__(self, panels, radius, *, frame_dt, input_frames, box_half_size, bounds, cmap, figsize, dpi):
         self.trajectories = [traj for _, traj in panels]
         self.frame_dt = frame_dt
         self.input_frames = input_frames
         colours, colour_label = _radius_scale(radius, box_half_size)
         norm = _radius_norm(colours)
         self.style = (radius, colours, norm, cmap)
+        box = _box(bounds, self.trajectories[0].shape[-1])
+        stacked = _aspect(box) > WIDE_ASPECT
+        if figsize is None:
+            figsize = _animation_figsize(box, len(panels))
         self.fig = _new_figure(figsize, dpi, layout="constrained")
-        axes = self.fig.subplots(1, len(panels), squeeze=False)[0]
+        axes = (
+            self.fig.subplots(len(panels), 1, squeeze=False)[:, 0]
+            if stacked
+            else self.fig.subplots(1, len(panels), squeeze=False)[0]
+        )
         self.collections = []
         for ax, (label, traj) in zip(axes, panels):
-            _box_axes(ax, label, traj.shape[-1])
+            _box_axes(ax, label, box)
             self.collections.append(_particles(ax, traj[0], radius, colours, norm, cmap))
-        self.fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), label=colour_label, shrink=0.85)
+        self.fig.colorbar(
+            ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), label=colour_label, shrink=1.0 if stacked else 0.85
+        )
         self.title = self.fig.suptitle(_time_label(0, frame_dt, input_frames))
         # Lay out once, then freeze: re-running the constrained layout on every
         # frame costs more than drawing the particles.
@@ -307,8 +377,9 @@ def rollout_animation(
     stride: int = 1,
     fps: float = 20.0,
     box_half_size: float | None = None,
+    bounds=None,
     titles: Sequence[str] = ("ground truth", "prediction"),
-    figsize=(9.0, 4.2),
+    figsize=None,
     dpi: float = 80,
     cmap: str = "viridis",
 ):
@@ -325,7 +396,13 @@ def rollout_animation(
         (``None``: no marks).
       start, stop, stride: the frames shown, ``range(T)[start:stop:stride]``.
       fps: frames per second. box_half_size: ``L`` in m to label radii in mm.
-      titles: panel titles. figsize, dpi: figure size (inches) and resolution.
+      bounds: the box, per axis ``(low, high)`` in units of ``L`` (``None``:
+        ``[-1, 1]^D``); a box wider than :data:`WIDE_ASPECT` times its height
+        stacks the panels.
+      titles: panel titles. figsize, dpi: figure size (inches) and resolution;
+        ``figsize=None``: 9 x 4.2 inches, or for a wide box
+        ``(w + 1.2) x (panels (w / aspect + 0.35) + 0.45)`` with
+        ``w = min(16, 3 aspect)``.
       cmap: matplotlib colour map for the radius.
 
     Returns:
@@ -343,6 +420,7 @@ def rollout_animation(
         frame_dt=frame_dt,
         input_frames=input_frames,
         box_half_size=box_half_size,
+        bounds=bounds,
         cmap=cmap,
         figsize=figsize,
         dpi=dpi,
@@ -394,8 +472,9 @@ def save_rollout_animation(
     stride: int = 1,
     fps: float = 20.0,
     box_half_size: float | None = None,
+    bounds=None,
     titles: Sequence[str] = ("ground truth", "prediction"),
-    figsize=(9.0, 4.2),
+    figsize=None,
     dpi: float = 80,
     cmap: str = "viridis",
 ) -> dict[str, Any]:
@@ -427,6 +506,7 @@ def save_rollout_animation(
         frame_dt=frame_dt,
         input_frames=input_frames,
         box_half_size=box_half_size,
+        bounds=bounds,
         cmap=cmap,
         figsize=figsize,
         dpi=dpi,
@@ -453,6 +533,7 @@ def frame_grid(
     mask=None,
     frame_dt: float | None = 1.5e-3,
     box_half_size: float | None = None,
+    bounds=None,
     row_labels: Sequence[str] = ("ground truth", "prediction"),
     panel_size: float = 2.4,
     dpi: float = 100,
@@ -463,20 +544,27 @@ def frame_grid(
 
     Rows are ground truth and prediction (one row if ``prediction`` is
     ``None``), columns the requested frames (negative indices count from the
-    end), each titled with its time.
+    end), each titled with its time. A box wider than :data:`WIDE_ASPECT`
+    times its height is drawn in one column instead: for each frame, truth
+    above prediction, each panel titled with both.
 
     Args:
       truth, prediction: ``(T, N, D)`` normalised positions (D = 2 or 3).
       radius: ``(N,)`` normalised radii. frames: frame indices.
       mask: optional ``(N,)`` bool. frame_dt: s per frame for the titles.
       box_half_size: ``L`` in m to label radii in mm.
-      row_labels: labels of the rows. panel_size: inches per panel.
+      bounds: the box, per axis ``(low, high)`` in units of ``L`` (``None``:
+        ``[-1, 1]^D``).
+      row_labels: labels of the rows. panel_size: inches per panel (its
+        height; a wide box's panels are ``min(16, panel_size * aspect)``
+        inches wide).
       dpi: resolution. cmap: colour map for the radius.
       path: if given, the PNG (or other extension) is written atomically.
 
     Returns:
       The figure, ``(len(frames) * panel_size + 1.2) x (rows * panel_size +
-      0.4)`` inches, so the image is that times ``dpi`` pixels.
+      0.4)`` inches for a box at most :data:`WIDE_ASPECT` times as wide as
+      tall, so the image is that times ``dpi`` pixels.
     """
     if radius is None:
         raise ValueError("radius (N,) is required to draw particles to scale")
@@ -492,16 +580,28 @@ def frame_grid(
         raise ValueError("frames must name at least one frame")
     colours, colour_label = _radius_scale(radius, box_half_size)
     norm = _radius_norm(colours)
+    box = _box(bounds, trajectories[0].shape[-1])
+    aspect = _aspect(box)
     rows, cols = len(trajectories), len(frames)
-    fig = _new_figure((cols * panel_size + 1.2, rows * panel_size + 0.4), dpi, layout="constrained")
-    axes = fig.subplots(rows, cols, squeeze=False)
-    for r, (label, traj) in enumerate(zip(labels, trajectories)):
+    if aspect > WIDE_ASPECT:
+        width = min(WIDE_WIDTH_IN, panel_size * aspect)
+        fig = _new_figure((width + 1.2, rows * cols * (width / aspect + 0.35) + 0.2), dpi, layout="constrained")
+        axes = fig.subplots(rows * cols, 1, squeeze=False)
         for c, frame in enumerate(frames):
-            ax = axes[r, c]
-            _box_axes(ax, _time_label(frame, frame_dt, None) if r == 0 else None, traj.shape[-1])
-            _particles(ax, traj[frame], radius, colours, norm, cmap)
-            if c == 0:
-                ax.set_ylabel(label)
+            for r, (label, traj) in enumerate(zip(labels, trajectories)):
+                ax = axes[c * rows + r, 0]
+                _box_axes(ax, f"{label}, {_time_label(frame, frame_dt, None)}", box)
+                _particles(ax, traj[frame], radius, colours, norm, cmap)
+    else:
+        fig = _new_figure((cols * panel_size + 1.2, rows * panel_size + 0.4), dpi, layout="constrained")
+        axes = fig.subplots(rows, cols, squeeze=False)
+        for r, (label, traj) in enumerate(zip(labels, trajectories)):
+            for c, frame in enumerate(frames):
+                ax = axes[r, c]
+                _box_axes(ax, _time_label(frame, frame_dt, None) if r == 0 else None, box)
+                _particles(ax, traj[frame], radius, colours, norm, cmap)
+                if c == 0:
+                    ax.set_ylabel(label)
     fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=axes.ravel().tolist(), label=colour_label, shrink=0.8)
     if path is not None:
         save_figure(fig, path)

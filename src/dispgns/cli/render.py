@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from dispgns.cli import CLIError
@@ -108,6 +109,14 @@ def run(args: argparse.Namespace) -> int:
             )
     else:
         params, model_config, _ = load_model_argument(args)
+        if metadata.dim != model_config.dim:
+            raise CLIError(
+                f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim {model_config.dim}"
+            )
+        # As in evaluate: the network is local, so the same parameters roll out in the dataset's
+        # box once the wall features are given its walls (with the model's own [-1, 1]^2, every
+        # disk of a wider container would be pinned to a wall).
+        model_config = dataclasses.replace(model_config, bounds=tuple(map(tuple, metadata.bounds)))
         input_frames = model_config.input_sequence_length
         try:
             prediction = np.asarray(
@@ -126,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.start < frames or (args.stop is not None and not args.start < args.stop <= frames):
         raise CLIError(f"--start/--stop: expected 0 <= start < stop <= {frames}")
     out = Path(args.out)
-    common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.length_scale)
+    # The dataset's box (per axis, in units of L): a wide container is drawn to its aspect.
+    common = dict(frame_dt=metadata.frame_dt, box_half_size=metadata.length_scale, bounds=metadata.bounds)
     with output_directory(out, overwrite=args.overwrite, marker=RENDER_FILE, kind="render") as staging:
         files = save_rollout_animation(
             str(staging / "rollout"),
@@ -147,7 +157,14 @@ def run(args: argparse.Namespace) -> int:
         source = {"predictions": str(args.predictions)} if args.predictions else {"model": args.model or "shipped"}
         write_json(
             staging / RENDER_FILE,
-            {"data": str(args.data), "split": args.split, "index": args.index, **source, "frames": frames},
+            {
+                "data": str(args.data),
+                "split": args.split,
+                "index": args.index,
+                **source,
+                "frames": frames,
+                "bounds": [list(map(float, axis)) for axis in metadata.bounds],
+            },
         )
     written = ["rollout.gif"] + (["rollout.mp4"] if files["mp4"] else []) + ["rollout_grid.png", RENDER_FILE]
     print(
