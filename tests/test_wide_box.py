@@ -317,3 +317,43 @@ def test_render_draws_the_dataset_box(tmp_path):
     with Image.open(out / "rollout.gif") as gif:  # truth above prediction, dpi 80
         assert gif.n_frames == 8
         assert gif.size == (int((width + 1.2) * 80), int((2 * (width / aspect + 0.35) + 0.45) * 80))
+
+
+def test_demo_refuses_a_wide_preset_in_three_dimensions(tmp_path, capsys):
+    from dispgns.cli import main
+
+    assert main(["demo", "--preset", "wide16", "--dim", "3", "--out", str(tmp_path / "demo")]) == 2
+    assert "--preset wide16: a 2-D container" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
+
+
+@pytest.mark.slow
+def test_demo_in_the_wide4_container(tmp_path, capsys):
+    """dispgns demo --preset wide4: ~700 disks in the 0.8 m box, the shipped model given that box, drawn to scale."""
+    import json
+
+    from PIL import Image
+
+    from dispgns.cli import main
+    from dispgns.render import WIDE_WIDTH_IN
+
+    out = tmp_path / "demo"
+    argv = ["demo", "--preset", "wide4", "--frames", "12", "--no-chaos", "--no-mp4", "--stride", "3", "--out", str(out)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "box 0.8x0.2 m (wide4)" in printed and "rollout MSE" in printed
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["preset"] == "wide4" and report["box_half_sizes_m"] == [0.4, 0.1]
+    assert report["n_particles"] > 400  # the paper's ~150-225 disks per unit of width, 4 widths
+    metrics = report["metrics"]
+    assert metrics["finite"] and metrics["wall_violations_total"] == 0
+    # Far below constant velocity: with the paper's [-1, 1]^2 every disk beyond |x| = 1 would be pinned.
+    assert metrics["mse"] < 0.2 * metrics["constant_velocity_mse"]
+    aspect = 8.08 / 2.08  # the box and its margins
+    width = min(WIDE_WIDTH_IN, 2.4 * aspect)
+    with Image.open(out / "rollout_grid.png") as png:  # 10 stacked panels, not a 5 x 2 grid of squares
+        assert png.size == (round((width + 1.2) * 100), round((10 * (width / aspect + 0.35) + 0.2) * 100))
+    width = min(WIDE_WIDTH_IN, 3.0 * aspect)
+    with Image.open(out / "rollout.gif") as gif:
+        assert gif.n_frames == 4
+        assert gif.size == (int((width + 1.2) * 80), int((2 * (width / aspect + 0.35) + 0.45) * 80))

@@ -107,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.training.checkpoint import write_json
 
     radii = _radii(args.radii)
+    if args.dim == 3 and args.preset != "paper":
+        raise CLIError(f"--preset {args.preset}: a 2-D container; --dim 3 uses the paper3d cube")
     out = Path(args.out)
     # Refused before minutes of computing: an existing output needs --overwrite.
     check_output(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="demo")
@@ -114,8 +116,6 @@ def run(args: argparse.Namespace) -> int:
     if model_config.dim != args.dim:
         hint = " (no 3-D model ships yet: pass --model PATH to a 3-D run or model)" if args.dim == 3 else ""
         raise CLIError(f"--dim {args.dim}: the model is {model_config.dim}-D{hint}")
-    if args.dim == 3 and args.preset != "paper":
-        raise CLIError(f"--preset {args.preset}: a 2-D container; --dim 3 uses the paper3d cube")
     if args.frames is None:
         args.frames = DEFAULT_FRAMES[args.preset] if args.dim == 2 else 200
     c = model_config.input_sequence_length
