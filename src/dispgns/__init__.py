@@ -18,6 +18,7 @@ from the data and grown after an overflow): :func:`simulate`,
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
@@ -123,6 +124,10 @@ __all__ = [
 
 def __getattr__(name: str):
     module = _EXPORTS.get(name)
+    if module is None and not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        # A submodule loads on first use too, so annotations naming one (``dispgns.model.ModelConfig`` in
+        # a module that must not import it early) resolve with ``typing.get_type_hints``.
+        module = f"{__name__}.{name}"
     if module is None:
         raise AttributeError(f"module 'dispgns' has no attribute {name!r}")
     loaded = importlib.import_module(module)

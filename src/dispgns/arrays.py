@@ -16,15 +16,28 @@ from typing import Any
 
 import jax
 import numpy as np
-from jaxtyping import ArrayLike, Bool, Float
+from jaxtyping import ArrayLike, Bool, Float, Int, PRNGKeyArray, PyTree
 
 __all__ = [
+    "BatchFrame",
+    "BatchMask",
+    "BatchPositions",
+    "BatchRadii",
+    "BatchWindow",
+    "Box",
+    "Count",
     "Flag",
     "Frame",
+    "FrameFlags",
+    "Params",
     "ParticleMask",
+    "PerAxis",
+    "PerFrame",
     "PositionWindow",
     "Positions",
+    "PRNGKey",
     "Radii",
+    "Scalar",
     "host_array",
     "node_budget",
     "pad_particles",
@@ -32,14 +45,31 @@ __all__ = [
 ]
 
 # Array shapes of the public API (jaxtyping annotations: documentation for readers, IDEs and type checkers;
-# no runtime check). T frames, C input frames, N particles, D = 2 or 3 axes; normalised units unless a
-# docstring says SI.
+# no runtime check). T frames, C input frames, N particles, D = 2 or 3 axes, B trajectories of a batch;
+# normalised units unless a docstring says SI. A module's rarer shapes are aliases at its top.
 Positions = Float[ArrayLike, "T N D"]
 PositionWindow = Float[ArrayLike, "C N D"]
 Frame = Float[ArrayLike, "N D"]
 Radii = Float[ArrayLike, "N"]
 ParticleMask = Bool[ArrayLike, "N"]
 Flag = Bool[ArrayLike, ""]
+Scalar = Float[ArrayLike, ""]
+Count = Int[ArrayLike, ""]
+PerFrame = Float[ArrayLike, "T"]
+PerAxis = Float[ArrayLike, "D"]
+FrameFlags = Bool[ArrayLike, "T"]
+# A box as an array: ``(lo, hi)`` per axis.
+Box = Float[ArrayLike, "D 2"]
+# Batches of trajectories padded to one particle count N (``mask`` marks the real particles).
+BatchPositions = Float[ArrayLike, "B T N D"]
+BatchWindow = Float[ArrayLike, "B C N D"]
+BatchFrame = Float[ArrayLike, "B N D"]
+BatchRadii = Float[ArrayLike, "B N"]
+BatchMask = Bool[ArrayLike, "B N"]
+# A ``jax.random`` key (new-style typed key or legacy ``uint32[2]``).
+PRNGKey = PRNGKeyArray
+# The network's parameters: a pytree of float arrays of any shape (``init_params``, checkpoints).
+Params = PyTree[Float[ArrayLike, "..."]]
 
 
 def host_array(x, name: str, *, pure: str | None = None) -> np.ndarray:

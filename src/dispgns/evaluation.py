@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dispgns.arrays import node_budget, stack_padded
+from dispgns.arrays import Frame, Params, ParticleMask, Positions, PRNGKey, Radii, node_budget, stack_padded
+from dispgns.data import Trajectory
 from dispgns.metrics import rollout_metrics, summarize
 from dispgns.model import ModelConfig
 from dispgns.physics import PhysicsConfig, simulate, simulate_batch
@@ -47,20 +48,20 @@ CHAOS_PERTURBATION = 1e-6
 
 
 def chaos_floor_rollout(
-    initial_position,
-    initial_velocity,
-    radius,
+    initial_position: Frame,
+    initial_velocity: Frame,
+    radius: Radii,
     config: PhysicsConfig,
     *,
-    key,
+    key: PRNGKey | int,
     n_frames: int,
     save_every: int = 15,
     perturbation: float = 1e-6,
-    mask=None,
+    mask: ParticleMask | None = None,
     x64: bool = True,
     length_scale: float | None = None,
-    **simulate_kwargs,
-) -> np.ndarray:
+    **simulate_kwargs: Any,
+) -> Positions:
     """Re-run the ground truth from a slightly perturbed initial state.
 
     The suspension is chaotic: two exact simulations whose initial positions
@@ -114,15 +115,15 @@ def chaos_floor_rollout(
 
 
 def perturb_positions(
-    key,
-    initial_position,
-    radius,
+    key: PRNGKey,
+    initial_position: Frame,
+    radius: Radii,
     config: PhysicsConfig,
     *,
     perturbation: float = 1e-6,
-    mask=None,
+    mask: ParticleMask | None = None,
     length_scale: float | None = None,
-) -> jnp.ndarray:
+) -> Frame:
     """Initial centres shifted by independent normal draws of std ``perturbation * L`` (the chaos floor's start).
 
     Shifted centres are kept inside the wall contact positions ``[-L + a_i,
@@ -157,8 +158,8 @@ def perturb_positions(
 
 
 def predict_trajectories(
-    params,
-    trajectories: Sequence[Any],
+    params: Params,
+    trajectories: Sequence[Trajectory],
     *,
     model_config: ModelConfig,
     n_frames: int | None = None,
@@ -166,7 +167,7 @@ def predict_trajectories(
     progress: Callable[[int], None] | None = None,
     compiler_options: Mapping[str, Any] | None = None,
     mesh: jax.sharding.Mesh | None = None,
-) -> list[np.ndarray]:
+) -> list[Positions]:
     """Full rollouts of ``trajectories`` from their first ``C`` frames.
 
     Args:
@@ -248,7 +249,7 @@ def _from_every_process(mine: list[np.ndarray], trajectories: Sequence[Any], fra
 
 
 def chaos_floor_trajectories(
-    trajectories: Sequence[Any],
+    trajectories: Sequence[Trajectory],
     physics_config: PhysicsConfig,
     *,
     n_frames: int,
@@ -258,7 +259,7 @@ def chaos_floor_trajectories(
     x64: bool = False,
     compiler_options: Mapping[str, Any] | None = None,
     length_scale: float | None = None,
-) -> list[np.ndarray]:
+) -> list[Positions]:
     """The ground truth re-run from each trajectory's perturbed initial state, in one batched simulation.
 
     Args:
@@ -320,8 +321,8 @@ def chaos_floor_trajectories(
 
 
 def evaluate_trajectories(
-    params,
-    trajectories: Sequence[Any],
+    params: Params,
+    trajectories: Sequence[Trajectory],
     *,
     model_config: ModelConfig,
     box_half_size: float,
@@ -336,7 +337,7 @@ def evaluate_trajectories(
     compiler_options: Mapping[str, Any] | None = None,
     physics_compiler_options: Mapping[str, Any] | None = None,
     mesh: jax.sharding.Mesh | None = None,
-    bounds=None,
+    bounds: Sequence[Sequence[float]] | None = None,
     statistics: bool = False,
 ) -> dict[str, Any]:
     """Roll out and score every trajectory of a split.

@@ -20,14 +20,22 @@ positions.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float, Int
 
 from dispgns import graph as graph_lib
-from dispgns.arrays import host_array
+from dispgns.arrays import Box, PositionWindow, Radii, host_array
 from dispgns.capacity import Attempt, drive
+
+# Shapes (jaxtyping, no runtime check): C input frames, E edges, F node and G edge features.
+_Velocities = Float[ArrayLike, "C-1 N D"]
+_NodeFeatures = Float[ArrayLike, "N F"]
+_EdgeFeatures = Float[ArrayLike, "E G"]
+_EdgeIndex = Int[ArrayLike, "E"]
 
 __all__ = ["edge_feature_size", "edge_features", "graph_features", "node_feature_size", "node_features", "velocities"]
 
@@ -42,7 +50,7 @@ def edge_feature_size(input_sequence_length: int, dim: int) -> int:
     return input_sequence_length * dim + 2
 
 
-def velocities(position_seq: jnp.ndarray) -> jnp.ndarray:
+def velocities(position_seq: PositionWindow) -> _Velocities:
     """``(C, N, D)`` positions -> ``(C-1, N, D)`` velocities (one frame = one time unit)."""
     return position_seq[1:] - position_seq[:-1]
 
@@ -61,8 +69,12 @@ def _safe_norm(x: jnp.ndarray) -> jnp.ndarray:
 
 
 def node_features(
-    position_seq: jnp.ndarray, radius: jnp.ndarray, *, bounds=None, boundary_clip: float = 4.0
-) -> jnp.ndarray:
+    position_seq: PositionWindow,
+    radius: Radii,
+    *,
+    bounds: Sequence[Sequence[float]] | Box | None = None,
+    boundary_clip: float = 4.0,
+) -> _NodeFeatures:
     """Node features of the paper.
 
     Args:
@@ -84,8 +96,8 @@ def node_features(
 
 
 def edge_features(
-    position_seq: jnp.ndarray, radius: jnp.ndarray, senders: jnp.ndarray, receivers: jnp.ndarray
-) -> jnp.ndarray:
+    position_seq: PositionWindow, radius: Radii, senders: _EdgeIndex, receivers: _EdgeIndex
+) -> _EdgeFeatures:
     """Edge features of ``s -> r`` for every edge.
 
     Args:
@@ -110,13 +122,13 @@ def edge_features(
 
 
 def graph_features(
-    position_seq,
-    radius,
+    position_seq: PositionWindow,
+    radius: Radii,
     *,
-    bounds=None,
+    bounds: Sequence[Sequence[float]] | Box | None = None,
     connectivity_radius: float = 0.2,
     boundary_clip: float = 4.0,
-):
+) -> tuple[_NodeFeatures, _EdgeFeatures, _EdgeIndex, _EdgeIndex]:
     """Node features, edge features and edges of one configuration, padding removed.
 
     A host convenience for inspection and tests; it needs concrete arrays

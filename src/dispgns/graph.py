@@ -45,10 +45,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jax_md import partition, space
+from jaxtyping import ArrayLike, Bool, Float, Int
 from scipy.spatial import cKDTree
 
-from dispgns.arrays import host_array
+from dispgns.arrays import Box, Count, Flag, Frame, ParticleMask, host_array
 from dispgns.capacity import coarse_ladder, ladder
 from dispgns.tuning import thresholds
 
@@ -79,6 +81,13 @@ __all__ = [
 ]
 
 Bounds = tuple[tuple[float, float], ...]
+# Shapes (jaxtyping, no runtime check): E edge slots; positions of any leading shape ``(..., N, D)`` with a
+# mask broadcastable to ``(..., N)``; B graphs of a batch, merged into one list of M edge slots.
+_EdgeIndex = Int[ArrayLike, "E"]
+_AnyFrames = Float[ArrayLike, "*frames N D"]
+_AnyMask = Bool[ArrayLike, "*frames N"]
+_FrameCounts = Int[ArrayLike, "*frames"]
+_MergedIndex = Int[ArrayLike, "M"]
 
 DEFAULT_BOUNDS: Bounds = ((-1.0, 1.0), (-1.0, 1.0))
 
@@ -116,17 +125,17 @@ class Graph(NamedTuple):
         capacity: some edges are missing and the graph must not be used.
     """
 
-    senders: jnp.ndarray
-    receivers: jnp.ndarray
-    overflow: jnp.ndarray
+    senders: _EdgeIndex
+    receivers: _EdgeIndex
+    overflow: Flag
 
 
-def bounds_array(bounds: Sequence[Sequence[float]], dtype=None) -> jnp.ndarray:
+def bounds_array(bounds: Sequence[Sequence[float]], dtype: DTypeLike | None = None) -> Box:
     """``bounds`` ``((lo_0, hi_0), ..., (lo_{D-1}, hi_{D-1}))`` as a ``(D, 2)`` array."""
     return jnp.asarray(np.asarray(bounds, dtype=float), dtype)
 
 
-def as_bounds(bounds, dim: int) -> Bounds:
+def as_bounds(bounds: Sequence[Sequence[float]] | Box | None, dim: int) -> Bounds:
     """Validate ``bounds`` for ``dim`` axes and return it as a hashable tuple of ``(lo, hi)`` floats.
 
     ``None`` is the default box ``[-1, 1]^dim`` (normalised units).
@@ -148,8 +157,8 @@ def _grid(connectivity_radius: float, bounds: Bounds):
 
 
 def park_padding(
-    position: jnp.ndarray, mask: jnp.ndarray | None, *, connectivity_radius: float, bounds: Bounds | None = None
-) -> jnp.ndarray:
+    position: _AnyFrames, mask: _AnyMask | None, *, connectivity_radius: float, bounds: Bounds | None = None
+) -> _AnyFrames:
     """Move padding particles onto a lattice far outside the box.
 
     Lattice points are at least two cells (two radii) apart and spread over
@@ -174,7 +183,7 @@ def park_padding(
     return jnp.where(jnp.asarray(mask)[..., None], position, parked)
 
 
-def parking_lattice(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds | None = None) -> np.ndarray:
+def parking_lattice(n: int, dim: int, *, connectivity_radius: float, bounds: Bounds | None = None) -> Frame:
     """The ``(n, dim)`` float64 numpy positions :func:`park_padding` gives padding slots ``0 .. n-1``.
 
     Numpy, so that host code can use it inside a user's ``jit`` without
@@ -259,8 +268,8 @@ def _template(
 
 
 def radius_graph(
-    position: jnp.ndarray,
-    mask: jnp.ndarray | None = None,
+    position: Frame,
+    mask: ParticleMask | None = None,
     *,
     connectivity_radius: float,
     capacity: GraphCapacity,
@@ -311,7 +320,7 @@ def radius_graph(
     return Graph(senders=idx[0].astype(jnp.int32), receivers=idx[1].astype(jnp.int32), overflow=overflow)
 
 
-def count_pairs(position: jnp.ndarray, mask: jnp.ndarray | None = None, *, connectivity_radius: float) -> jnp.ndarray:
+def count_pairs(position: _AnyFrames, mask: _AnyMask | None = None, *, connectivity_radius: float) -> _FrameCounts:
     """Number of ordered pairs ``s != r`` of real particles closer than the radius (pure, all pairs).
 
     ``position``: ``(..., N, D)``; returns int32 of shape ``position.shape[:-2]``.
@@ -341,7 +350,7 @@ def _frames_and_masks(position, mask) -> tuple[np.ndarray, np.ndarray]:
     return x.reshape((-1,) + x.shape[-2:]), keep.reshape((-1, x.shape[-2]))
 
 
-def host_count_pairs(position, mask=None, *, connectivity_radius: float) -> np.ndarray:
+def host_count_pairs(position: _AnyFrames, mask: _AnyMask | None = None, *, connectivity_radius: float) -> _FrameCounts:
     """Host count of ordered pairs ``s != r`` of real particles closer than the radius, per frame.
 
     ``position``: concrete ``(..., N, D)``; ``mask``: broadcastable to
@@ -378,7 +387,9 @@ def host_count_pairs(position, mask=None, *, connectivity_radius: float) -> np.n
 _DENSE_COUNT_MAX_PARTICLES = 1024
 
 
-def host_max_cell_occupancy(position, mask=None, *, connectivity_radius: float, bounds: Bounds | None = None) -> int:
+def host_max_cell_occupancy(
+    position: _AnyFrames, mask: _AnyMask | None = None, *, connectivity_radius: float, bounds: Bounds | None = None
+) -> int:
     """Most particles in one cell of the cell list over all frames (padding parked as in :func:`radius_graph`).
 
     ``position``: concrete ``(..., N, D)``; ``mask``: broadcastable to ``position.shape[:-1]``.
@@ -435,8 +446,8 @@ def uses_cell_list(n: int, dim: int, *, connectivity_radius: float, bounds: Boun
 
 
 def fit_capacity(
-    position,
-    mask=None,
+    position: _AnyFrames,
+    mask: _AnyMask | None = None,
     *,
     connectivity_radius: float,
     bounds: Bounds | None = None,
@@ -470,8 +481,8 @@ def fit_capacity(
 def grow_capacity(
     capacity: GraphCapacity,
     n: int,
-    position=None,
-    mask=None,
+    position: _AnyFrames | None = None,
+    mask: _AnyMask | None = None,
     *,
     connectivity_radius: float | None = None,
     bounds: Bounds | None = None,
@@ -538,12 +549,12 @@ def grow_edge_budget(budget: int) -> int:
 # ----------------------------------------------------------------------------- merged graphs
 
 
-def merged_edge_count(graphs: Graph, n: int) -> jnp.ndarray:
+def merged_edge_count(graphs: Graph, n: int) -> Count:
     """Number of real edges (self-loops included) of ``B`` graphs ``(B, E)`` over ``n`` node slots: ``()`` int32."""
     return jnp.sum(graphs.receivers < n, dtype=jnp.int32)
 
 
-def merge_graphs(graphs: Graph, n: int, edge_budget: int | None = None) -> tuple[jnp.ndarray, jnp.ndarray]:
+def merge_graphs(graphs: Graph, n: int, edge_budget: int | None = None) -> tuple[_MergedIndex, _MergedIndex]:
     """``B`` graphs as one disjoint graph over ``B (n + 1)`` nodes (one dummy node per example).
 
     Example ``b``'s node ``i`` becomes node ``b (n + 1) + i``; unused edge

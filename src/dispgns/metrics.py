@@ -40,9 +40,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jaxtyping import ArrayLike, Bool, Float, Int
 
-from dispgns.arrays import pad_particles
+from dispgns.arrays import Box, Frame, ParticleMask, PerFrame, Positions, Radii, Scalar, pad_particles
 from dispgns.physics import PhysicsConfig, particle_mass
+
+# Shapes of this module's other arrays (jaxtyping annotations, no runtime check); C input frames.
+_Values = Float[ArrayLike, "*shape"]  # any shape, e.g. a scalar MSE or a per-frame curve
+_Curve = Float[ArrayLike, "T-C"]  # one value per predicted frame
+_Steps = Float[ArrayLike, "T-1"]  # one value per frame-to-frame step
+_FrameCounts = Int[ArrayLike, "T"]
+_Bins = Float[ArrayLike, "bins"]
+_BinCounts = Int[ArrayLike, "bins"]
+_OtherCloud = Float[ArrayLike, "M D"]
+_OtherMask = Bool[ArrayLike, "M"]
 
 __all__ = [
     "DEFAULT_HORIZONS",
@@ -124,7 +135,7 @@ def _check_pair(prediction, truth, input_frames: int):
 # ----------------------------------------------------------------------------
 
 
-def squared_error_per_frame(prediction, truth, mask=None) -> jnp.ndarray:
+def squared_error_per_frame(prediction: Positions, truth: Positions, mask: ParticleMask | None = None) -> PerFrame:
     """Mean squared position error of every frame.
 
     Args:
@@ -147,7 +158,9 @@ def squared_error_per_frame(prediction, truth, mask=None) -> jnp.ndarray:
     return squared @ weight / (jnp.sum(weight) * dim)
 
 
-def per_frame_mse(prediction, truth, *, input_frames: int = 6, mask=None) -> jnp.ndarray:
+def per_frame_mse(
+    prediction: Positions, truth: Positions, *, input_frames: int = 6, mask: ParticleMask | None = None
+) -> _Curve:
     """Per-frame MSE curve over the predicted frames.
 
     Args:
@@ -163,7 +176,14 @@ def per_frame_mse(prediction, truth, *, input_frames: int = 6, mask=None) -> jnp
     return squared_error_per_frame(prediction[input_frames:], truth[input_frames:], mask)
 
 
-def rollout_mse(prediction, truth, *, input_frames: int = 6, mask=None, horizon: int | None = None) -> jnp.ndarray:
+def rollout_mse(
+    prediction: Positions,
+    truth: Positions,
+    *,
+    input_frames: int = 6,
+    mask: ParticleMask | None = None,
+    horizon: int | None = None,
+) -> Scalar:
     """The paper's rollout MSE: mean squared position error (normalised units).
 
     The mean runs over all predicted frames (or the first ``horizon`` of them),
@@ -191,7 +211,7 @@ def rollout_mse(prediction, truth, *, input_frames: int = 6, mask=None, horizon:
     return jnp.mean(curve)
 
 
-def horizon_mse(curve, horizons: Sequence[int] = DEFAULT_HORIZONS) -> dict[str, float | None]:
+def horizon_mse(curve: _Curve, horizons: Sequence[int] = DEFAULT_HORIZONS) -> dict[str, float | None]:
     """MSE over the first ``h`` predicted frames, for several horizons.
 
     Args:
@@ -216,7 +236,7 @@ def horizon_mse(curve, horizons: Sequence[int] = DEFAULT_HORIZONS) -> dict[str, 
     return out
 
 
-def rmse_mm(mse, box_half_size: float):
+def rmse_mm(mse: _Values, box_half_size: float) -> _Values:
     """Root-mean-square position error in millimetres: ``sqrt(mse) * L * 1000``.
 
     Args:
@@ -226,7 +246,7 @@ def rmse_mm(mse, box_half_size: float):
     return jnp.sqrt(mse) * box_half_size * 1e3
 
 
-def rmse_diameters(mse, radius, mask=None):
+def rmse_diameters(mse: _Values, radius: Radii, mask: ParticleMask | None = None) -> _Values:
     """Root-mean-square position error in mean particle diameters.
 
     ``sqrt(mse) * L / mean(2 a_i)``; with ``mse`` and ``radius`` both in
@@ -243,7 +263,7 @@ def rmse_diameters(mse, radius, mask=None):
     return jnp.sqrt(mse) / mean_diameter
 
 
-def mse_times_L_mm(mse, box_half_size: float):
+def mse_times_L_mm(mse: _Values, box_half_size: float) -> _Values:
     """The paper's conversion ``mse * L * 1000`` ("0.066 mm" for 6.6e-4).
 
     Kept only to compare with the paper's text: it multiplies a squared length
@@ -257,7 +277,14 @@ def mse_times_L_mm(mse, box_half_size: float):
 # ----------------------------------------------------------------------------
 
 
-def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None, bounds=None) -> jnp.ndarray:
+def wall_violations(
+    positions: Positions,
+    radius: Radii,
+    *,
+    tolerance: float = 0.1,
+    mask: ParticleMask | None = None,
+    bounds: Sequence[Sequence[float]] | None = None,
+) -> _FrameCounts:
     """Particles poking through a wall, per frame.
 
     A particle is outside when on some axis its centre lies beyond its wall
@@ -292,7 +319,9 @@ def wall_violations(positions, radius, *, tolerance: float = 0.1, mask=None, bou
     return jnp.sum(outside, axis=-1, dtype=jnp.int32)
 
 
-def overlap_counts(positions, radius, *, coeff: float = 1.75, mask=None) -> jnp.ndarray:
+def overlap_counts(
+    positions: Positions, radius: Radii, *, coeff: float = 1.75, mask: ParticleMask | None = None
+) -> _FrameCounts:
     """Overlapping pairs per frame.
 
     A pair ``i < j`` of real particles overlaps when its centre distance is
@@ -325,8 +354,14 @@ def overlap_counts(positions, radius, *, coeff: float = 1.75, mask=None) -> jnp.
 
 
 def kinetic_energy(
-    positions, radius, *, box_half_size: float, frame_dt: float, mask=None, config: PhysicsConfig | None = None
-) -> jnp.ndarray:
+    positions: Positions,
+    radius: Radii,
+    *,
+    box_half_size: float,
+    frame_dt: float,
+    mask: ParticleMask | None = None,
+    config: PhysicsConfig | None = None,
+) -> _Steps:
     """Total kinetic energy in joules from finite-difference velocities.
 
     The velocity at frame ``k >= 1`` is the backward difference
@@ -357,7 +392,7 @@ def kinetic_energy(
     return 0.5 * speed2 @ mass
 
 
-def mean_height(positions, mask=None) -> jnp.ndarray:
+def mean_height(positions: Positions, mask: ParticleMask | None = None) -> PerFrame:
     """Mean over real particles of the last coordinate (height, against gravity).
 
     Args:
@@ -386,7 +421,7 @@ def _particle_volume(radius, dim: int):
     return math.pi * radius**2 if dim == 2 else (4.0 / 3.0) * math.pi * radius**3
 
 
-def front_height(positions, mask=None, *, quantile: float = 0.95) -> jnp.ndarray:
+def front_height(positions: Positions, mask: ParticleMask | None = None, *, quantile: float = 0.95) -> PerFrame:
     """Height of the suspension front: the ``quantile`` of the particles' heights, per frame.
 
     The front of a settling suspension is the level below which nearly all
@@ -417,7 +452,7 @@ def front_height(positions, mask=None, *, quantile: float = 0.95) -> jnp.ndarray
     return low + fraction * (high - low)
 
 
-def settling_velocity(heights, *, frame_dt: float, box_half_size: float) -> jnp.ndarray:
+def settling_velocity(heights: PerFrame, *, frame_dt: float, box_half_size: float) -> Scalar:
     """Least-squares slope of a height curve, in m/s (negative when settling).
 
     Args:
@@ -437,7 +472,14 @@ def settling_velocity(heights, *, frame_dt: float, box_half_size: float) -> jnp.
     return slope * box_half_size
 
 
-def height_profile(frame, radius, mask=None, *, bins: int = 20, bounds=None) -> tuple[jnp.ndarray, jnp.ndarray]:
+def height_profile(
+    frame: Frame,
+    radius: Radii,
+    mask: ParticleMask | None = None,
+    *,
+    bins: int = 20,
+    bounds: Box | None = None,
+) -> tuple[_BinCounts, _Bins]:
     """Particle count and area (volume) fraction per height bin of one frame.
 
     The box's height range is cut into ``bins`` equal slabs; a particle counts
@@ -472,7 +514,14 @@ def height_profile(frame, radius, mask=None, *, bins: int = 20, bounds=None) -> 
     return counts, fraction
 
 
-def bed_area_fraction(frame, radius, mask=None, *, quantile: float = 0.95, bounds=None) -> jnp.ndarray:
+def bed_area_fraction(
+    frame: Frame,
+    radius: Radii,
+    mask: ParticleMask | None = None,
+    *,
+    quantile: float = 0.95,
+    bounds: Box | None = None,
+) -> Scalar:
     """Area (volume) fraction of a bed: the particles' total area over the box below the front.
 
     Args:
@@ -495,8 +544,14 @@ def bed_area_fraction(frame, radius, mask=None, *, quantile: float = 0.95, bound
 
 
 def radial_distribution(
-    frame, *, r_max: float, bins: int, volume: float, mask=None, query_mask=None
-) -> tuple[jnp.ndarray, jnp.ndarray]:
+    frame: Frame,
+    *,
+    r_max: float,
+    bins: int,
+    volume: float,
+    mask: ParticleMask | None = None,
+    query_mask: ParticleMask | None = None,
+) -> tuple[_Bins, _Bins]:
     """Radial distribution function g(r) of one frame (no periodic images).
 
     Counts, for every query particle ``i`` (``query_mask``), the particles
@@ -536,7 +591,14 @@ def radial_distribution(
     return 0.5 * (edges[1:] + edges[:-1]), counts / ideal
 
 
-def sinkhorn_divergence(x, y, *, epsilon: float, mask_x=None, mask_y=None) -> jnp.ndarray:
+def sinkhorn_divergence(
+    x: Frame,
+    y: _OtherCloud,
+    *,
+    epsilon: float,
+    mask_x: ParticleMask | None = None,
+    mask_y: _OtherMask | None = None,
+) -> Scalar:
     """Debiased Sinkhorn divergence between two point clouds (``ott-jax``).
 
     ``S(x, y) = OT_eps(x, y) - (OT_eps(x, x) + OT_eps(y, y)) / 2`` with the
@@ -565,7 +627,14 @@ def sinkhorn_divergence(x, y, *, epsilon: float, mask_x=None, mask_y=None) -> jn
     return value
 
 
-def maximum_mean_discrepancy(x, y, *, bandwidths: Sequence[float], mask_x=None, mask_y=None) -> jnp.ndarray:
+def maximum_mean_discrepancy(
+    x: Frame,
+    y: _OtherCloud,
+    *,
+    bandwidths: Sequence[float],
+    mask_x: ParticleMask | None = None,
+    mask_y: _OtherMask | None = None,
+) -> Scalar:
     """Squared maximum mean discrepancy between two point clouds (biased estimate).
 
     ``MMD^2 = E k(x, x') + E k(y, y') - 2 E k(x, y)`` with the sum of Gaussian
@@ -599,7 +668,7 @@ def maximum_mean_discrepancy(x, y, *, bandwidths: Sequence[float], mask_x=None, 
 # ----------------------------------------------------------------------------
 
 
-def constant_velocity_rollout(positions, *, input_frames: int = 6, n_frames: int | None = None) -> jnp.ndarray:
+def constant_velocity_rollout(positions: Positions, *, input_frames: int = 6, n_frames: int | None = None) -> Positions:
     """The constant-velocity baseline.
 
     Keeps the ``C`` input frames and then moves every particle on with its
@@ -866,20 +935,20 @@ def _error_family(prefix: str, curve, mean_diameter: float, box_half_size: float
 
 
 def rollout_metrics(
-    prediction,
-    truth,
-    radius,
+    prediction: Positions,
+    truth: Positions,
+    radius: Radii,
     *,
     box_half_size: float,
     input_frames: int = 6,
     frame_dt: float = 1.5e-3,
-    mask=None,
+    mask: ParticleMask | None = None,
     horizons: Sequence[int] = DEFAULT_HORIZONS,
     wall_tolerance: float = 0.1,
     overlap_coeff: float = 1.75,
-    chaos_floor=None,
+    chaos_floor: Positions | None = None,
     physics_config: PhysicsConfig | None = None,
-    bounds=None,
+    bounds: Sequence[Sequence[float]] | None = None,
     statistics: bool = False,
     statistics_settings: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:

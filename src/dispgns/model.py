@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dispgns._config import check_fields, config_from_mapping
+from dispgns.arrays import Params, PerAxis, PRNGKey
 from dispgns.features import edge_feature_size, node_feature_size
 from dispgns.graph import Bounds, as_bounds
 
@@ -267,13 +268,13 @@ class EncodeProcessDecode(nn.Module):
         return self.decoder(nodes)
 
 
-def identity_normalization(dim: int = 2) -> dict[str, jnp.ndarray]:
+def identity_normalization(dim: int = 2) -> dict[str, PerAxis]:
     """Statistics that leave features and targets unchanged (the authors' recipe), each ``(dim,)``."""
     zeros, ones = jnp.zeros((dim,), jnp.float32), jnp.ones((dim,), jnp.float32)
     return {"velocity_mean": zeros, "velocity_std": ones, "acceleration_mean": zeros, "acceleration_std": ones}
 
 
-def init_params(key: jax.Array, model_config: ModelConfig, normalization: Mapping[str, Any] | None = None) -> dict:
+def init_params(key: PRNGKey, model_config: ModelConfig, normalization: Mapping[str, PerAxis] | None = None) -> Params:
     """Initial parameters.
 
     Args:

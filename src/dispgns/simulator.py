@@ -42,15 +42,39 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jaxtyping import ArrayLike, Bool, Float
 
 from dispgns import features as features_lib
 from dispgns import graph as graph_lib
-from dispgns.arrays import Flag, Frame, ParticleMask, Positions, PositionWindow, Radii, host_array
+from dispgns.arrays import (
+    BatchFrame,
+    BatchMask,
+    BatchPositions,
+    BatchRadii,
+    BatchWindow,
+    Count,
+    Flag,
+    Frame,
+    Params,
+    ParticleMask,
+    Positions,
+    PositionWindow,
+    Radii,
+    host_array,
+)
 from dispgns.capacity import Attempt, drive
 from dispgns.graph import Graph, GraphCapacity
 from dispgns.model import ModelConfig, apply_network
 from dispgns.tuning import jitted
 from dispgns.validation import check_particles
+
+# Shapes (jaxtyping, no runtime check) of one trajectory's arrays or a batch's (leading B).
+_Frames = Float[ArrayLike, "*B N D"]
+_Flags = Bool[ArrayLike, "*B"]
+_Window = Float[ArrayLike, "*B C N D"]
+_StepPositions = Float[ArrayLike, "L *B N D"]
+_AnyFrames = Float[ArrayLike, "*frames N D"]
+_AnyMask = Bool[ArrayLike, "*frames N"]
 
 __all__ = [
     "PredictedStep",
@@ -81,15 +105,15 @@ class PredictedStep(NamedTuple):
         arrays are NaN.
     """
 
-    acceleration: jnp.ndarray
-    position: jnp.ndarray
-    overflow: jnp.ndarray
+    acceleration: _Frames
+    position: _Frames
+    overflow: _Flags
 
 
 # ----------------------------------------------------------------------------- the pieces of one step
 
 
-def as_capacity(capacity) -> GraphCapacity:
+def as_capacity(capacity: GraphCapacity | int | None) -> GraphCapacity:
     """A :class:`GraphCapacity` from a capacity or an int (ordered pairs ``s != r``, all-pairs search)."""
     if isinstance(capacity, GraphCapacity):
         return capacity
@@ -101,7 +125,9 @@ def as_capacity(capacity) -> GraphCapacity:
     return GraphCapacity(edges=int(capacity))
 
 
-def sanitize(position_seq: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray, model_config: ModelConfig):
+def sanitize(
+    position_seq: PositionWindow, radius: Radii, mask: ParticleMask, model_config: ModelConfig
+) -> tuple[PositionWindow, Radii]:
     """Padding rows replaced by parked positions and unit radii (finite features, no edges to real particles)."""
     position_seq = graph_lib.park_padding(
         position_seq, mask, connectivity_radius=model_config.connectivity_radius, bounds=model_config.bounds
@@ -110,7 +136,7 @@ def sanitize(position_seq: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray, 
     return position_seq, radius
 
 
-def build_graph(position: jnp.ndarray, mask: jnp.ndarray, capacity: GraphCapacity, model_config: ModelConfig) -> Graph:
+def build_graph(position: Frame, mask: ParticleMask, capacity: GraphCapacity, model_config: ModelConfig) -> Graph:
     """The radius graph of ``position`` ``(N, D)`` for ``model_config`` (see :func:`dispgns.graph.radius_graph`)."""
     return graph_lib.radius_graph(
         position,
@@ -129,7 +155,9 @@ def _standardized_nodes(position_seq, radius, norm, c: ModelConfig):
     return jnp.concatenate([(nodes[:, :n_vel] - mean) / std, nodes[:, n_vel:]], axis=-1)
 
 
-def network_output(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph: Graph, *, model_config: ModelConfig):
+def network_output(
+    params: Params, position_seq: PositionWindow, radius: Radii, graph: Graph, *, model_config: ModelConfig
+) -> Frame:
     """Standardised network output ``(N, D)`` for sanitised inputs and a graph (what the loss compares).
 
     Args:
@@ -145,14 +173,14 @@ def network_output(params, position_seq: jnp.ndarray, radius: jnp.ndarray, graph
 
 
 def network_output_batch(
-    params,
-    position_seq: jnp.ndarray,
-    radius: jnp.ndarray,
+    params: Params,
+    position_seq: BatchWindow,
+    radius: BatchRadii,
     graphs: Graph,
     *,
     model_config: ModelConfig,
     edge_budget: int | None = None,
-) -> jnp.ndarray:
+) -> BatchFrame:
     """:func:`network_output` for ``B`` examples at once, as one disjoint graph.
 
     Merging the examples (rather than vmapping the network) keeps gathers
@@ -184,7 +212,7 @@ def network_output_batch(
     return out.reshape(b, n + 1, -1)[:, :n]
 
 
-def acceleration_from_output(params, output: jnp.ndarray, radius: jnp.ndarray) -> jnp.ndarray:
+def acceleration_from_output(params: Params, output: Frame, radius: Radii) -> Frame:
     """De-standardise the network output: ``(y * std + mean) * a_i``, ``(N, D)`` in normalised units / frame^2."""
     norm = jax.tree_util.tree_map(lax.stop_gradient, params["normalization"])
     return (output * norm["acceleration_std"] + norm["acceleration_mean"]) * radius[:, None]
@@ -218,12 +246,12 @@ def _inputs(position_seq, radius, mask):
 
 
 def predict_step(
-    params,
+    params: Params,
     position_seq: PositionWindow,
     radius: Radii,
     *,
     model_config: ModelConfig,
-    capacity,
+    capacity: GraphCapacity | int,
     mask: ParticleMask | None = None,
 ) -> PredictedStep:
     """One learned step with a fixed graph capacity (pure: ``jit``, ``vmap``, ``grad``, ``lax.scan``).
@@ -253,13 +281,13 @@ def predict_step(
 
 
 def predict_step_batch(
-    params,
-    position_seq,
-    radius,
+    params: Params,
+    position_seq: BatchWindow,
+    radius: BatchRadii,
     *,
     model_config: ModelConfig,
-    capacity,
-    mask=None,
+    capacity: GraphCapacity | int,
+    mask: BatchMask | None = None,
     edge_budget: int | None = None,
 ) -> PredictedStep:
     """:func:`predict_step` for ``B`` trajectories at once, evaluated as one disjoint graph (pure).
@@ -290,13 +318,13 @@ def predict_step_batch(
 
 
 def rollout_scan(
-    params,
+    params: Params,
     initial_positions: PositionWindow,
     radius: Radii,
     n_steps: int,
     *,
     model_config: ModelConfig,
-    capacity,
+    capacity: GraphCapacity | int,
     mask: ParticleMask | None = None,
 ) -> tuple[Positions, Flag]:
     """Autoregressive rollout as one ``lax.scan`` with a fixed graph capacity (pure).
@@ -335,7 +363,9 @@ def rollout_scan(
 # ----------------------------------------------------------------------------- host conveniences
 
 
-def fit_capacity(position, model_config: ModelConfig, *, mask=None, margin: float = 0.05) -> GraphCapacity:
+def fit_capacity(
+    position: _AnyFrames, model_config: ModelConfig, *, mask: _AnyMask | None = None, margin: float = 0.05
+) -> GraphCapacity:
     """:func:`dispgns.graph.fit_capacity` with the model's radius and box: fits every frame of ``position``.
 
     Args:
@@ -429,14 +459,14 @@ def _predict_once(params, position_seq, radius, mask, capacity, model_config, co
 
 
 def predict_acceleration(
-    params,
+    params: Params,
     position_seq: PositionWindow,
     radius: Radii,
     *,
     model_config: ModelConfig,
     mask: ParticleMask | None = None,
-    capacity=None,
-    compiler_options=None,
+    capacity: GraphCapacity | int | None = None,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> Frame:
     """Predicted acceleration of every particle for one step (host; see :func:`predict_step` for the pure core).
 
@@ -458,14 +488,14 @@ def predict_acceleration(
 
 
 def predict_position(
-    params,
+    params: Params,
     position_seq: PositionWindow,
     radius: Radii,
     *,
     model_config: ModelConfig,
     mask: ParticleMask | None = None,
-    capacity=None,
-    compiler_options=None,
+    capacity: GraphCapacity | int | None = None,
+    compiler_options: Mapping[str, Any] | None = None,
 ) -> Frame:
     """Predicted next position ``x_t + (x_t - x_{t-1}) + acc``, ``(N, D)`` (host).
 
@@ -474,7 +504,9 @@ def predict_position(
     return _predict_once(params, position_seq, radius, mask, capacity, model_config, compiler_options).position
 
 
-def steps_until_overflow(step: Callable, window, limit, *, length: int, axis: int):
+def steps_until_overflow(
+    step: Callable[[_Window], tuple[_Frames, Flag]], window: _Window, limit: Count, *, length: int, axis: int
+) -> tuple[_Window, _StepPositions, Count, Flag]:
     """Up to ``limit`` steps of ``step(window) -> (next frame, overflow ())``, stopping after an overflowing one.
 
     ``window`` holds the last ``C`` frames along ``axis`` (0 for one
@@ -598,14 +630,14 @@ def _host_rollout(params, initial_positions, radius, n_steps, model_config: Mode
 
 
 def rollout(
-    params,
+    params: Params,
     initial_positions: PositionWindow,
     radius: Radii,
     n_steps: int,
     *,
     model_config: ModelConfig,
     mask: ParticleMask | None = None,
-    capacity=None,
+    capacity: GraphCapacity | int | None = None,
     chunk_size: int = 50,
     compiler_options: Mapping[str, Any] | None = None,
     progress: Callable[[int], None] | None = None,
@@ -640,19 +672,19 @@ def rollout(
 
 
 def rollout_batch(
-    params,
-    initial_positions,
-    radius,
+    params: Params,
+    initial_positions: BatchWindow,
+    radius: BatchRadii,
     n_steps: int,
     *,
     model_config: ModelConfig,
-    mask=None,
-    capacity=None,
+    mask: BatchMask | None = None,
+    capacity: GraphCapacity | int | None = None,
     chunk_size: int = 50,
     compiler_options: Mapping[str, Any] | None = None,
     progress: Callable[[int], None] | None = None,
     mesh: jax.sharding.Mesh | None = None,
-):
+) -> BatchPositions:
     """Rollouts of ``B`` trajectories of equal padded size in one compiled program per chunk (host).
 
     The same result as :func:`rollout` of each trajectory (padding never

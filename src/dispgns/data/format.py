@@ -57,10 +57,15 @@ from typing import Any
 
 import h5py
 import numpy as np
+from jaxtyping import ArrayLike, Int
 
 from dispgns import files
+from dispgns.arrays import Frame, Positions, Radii
 from dispgns.files import atomic_path, write_atomic
 from dispgns.physics import PhysicsConfig
+
+# Per particle, an integer type (zeros; LagrangeBench reads it).
+_ParticleTypes = Int[ArrayLike, "N"]
 
 __all__ = [
     "BOX_TOLERANCE",
@@ -152,12 +157,12 @@ class Trajectory:
         ``index``, ``radii_m``.
     """
 
-    position: np.ndarray
-    radius: np.ndarray
-    initial_position: np.ndarray | None = None
-    initial_velocity: np.ndarray | None = None
-    particle_type: np.ndarray | None = None
-    initial_radius: np.ndarray | None = None
+    position: Positions
+    radius: Radii
+    initial_position: Frame | None = None
+    initial_velocity: Frame | None = None
+    particle_type: _ParticleTypes | None = None
+    initial_radius: Radii | None = None
     attrs: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from dispgns.data.format import BOX_TOLERANCE, DatasetError, Trajectory
+from dispgns.data.format import BOX_TOLERANCE, DatasetError, DatasetMetadata, Trajectory
 from dispgns.files import atomic_path, write_atomic
 
 __all__ = [
@@ -604,7 +604,7 @@ def import_trajectory_files(
     save_every: int = 15,
     dt: float | None = None,
     overwrite: bool = False,
-):
+) -> DatasetMetadata:
     """Import trajectory files (one trajectory each) as split ``split`` of the dataset ``out_dir``.
 
     Args:
@@ -680,7 +680,7 @@ def export_trajectories(
     *,
     splits: Sequence[str] | None = None,
     indices: Sequence[int] | None = None,
-    metadata=None,
+    metadata: DatasetMetadata | None = None,
     box_half_size: float | None = None,
     frame_dt: float | None = None,
     overwrite: bool = False,

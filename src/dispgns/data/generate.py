@@ -32,7 +32,9 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
+from dispgns.arrays import PRNGKey
 from dispgns.data.format import (
     SPLITS,
     DatasetMetadata,
@@ -388,7 +390,7 @@ def preset(name: str) -> DatasetSpec:
 # ----------------------------------------------------------------------------- initial states
 
 
-def trajectory_key(seed: int, split: str, index: int) -> jax.Array:
+def trajectory_key(seed: int, split: str, index: int) -> PRNGKey:
     """The PRNG key of trajectory ``index`` of ``split`` (independent of every other trajectory)."""
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), SPLIT_IDS[split]), index)
 
@@ -400,12 +402,12 @@ class _Draw(NamedTuple):
 
 
 def sample_initial_states(
-    keys: Sequence[jax.Array],
+    keys: Sequence[PRNGKey],
     radii_lists: Sequence[Sequence[float]],
     config: PhysicsConfig = PhysicsConfig(),
     *,
     dim: int = 2,
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
     progress: Callable[[int], None] | None = None,
     labels: Sequence[str] | None = None,
 ) -> list[InitialState]:

@@ -10,9 +10,16 @@ import math
 
 import jax.numpy as jnp
 from jax import lax
+from jaxtyping import ArrayLike, Float, Int
 
+from dispgns.arrays import Frame, ParticleMask, Radii
 from dispgns.physics.config import PhysicsConfig
 from dispgns.tuning import thresholds
+
+# Q trial positions (m), the particle each belongs to, and a dense neighbour list of M slots per particle.
+_Queries = Float[ArrayLike, "Q D"]
+_QueryIndex = Int[ArrayLike, "Q"]
+_NeighborIndex = Int[ArrayLike, "N M"]
 
 __all__ = [
     "external_force",
@@ -25,7 +32,7 @@ __all__ = [
 ]
 
 
-def particle_volume(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp.ndarray:
+def particle_volume(radius: Radii, config: PhysicsConfig, dim: int) -> Radii:
     """Volume in m^3 of each particle; ``radius`` is ``(N,)`` in m.
 
     ``dim = 2``: disks of thickness ``config.thickness`` (the paper's model);
@@ -38,12 +45,12 @@ def particle_volume(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp
     raise ValueError(f"spatial dimension must be 2 or 3, got {dim}")
 
 
-def particle_mass(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp.ndarray:
+def particle_mass(radius: Radii, config: PhysicsConfig, dim: int) -> Radii:
     """Mass in kg, ``(N,)``."""
     return config.density * particle_volume(radius, config, dim)
 
 
-def external_force(radius: jnp.ndarray, config: PhysicsConfig, dim: int) -> jnp.ndarray:
+def external_force(radius: Radii, config: PhysicsConfig, dim: int) -> Frame:
     """Buoyant weight in N, ``(N, D)``: zero except ``-(rho - rho_f) V g`` on the last axis."""
     weight = (config.density - config.fluid_density) * particle_volume(radius, config, dim) * config.gravity
     force = jnp.zeros(radius.shape + (dim,), dtype=radius.dtype)
@@ -74,14 +81,14 @@ def pair_force_over_distance(r2: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray
 
 
 def interaction_force(
-    query: jnp.ndarray,
-    query_index: jnp.ndarray,
-    position: jnp.ndarray,
-    radius: jnp.ndarray,
-    mask: jnp.ndarray,
+    query: _Queries,
+    query_index: _QueryIndex,
+    position: Frame,
+    radius: Radii,
+    mask: ParticleMask,
     config: PhysicsConfig,
-    neighbor_idx: jnp.ndarray | None = None,
-) -> jnp.ndarray:
+    neighbor_idx: _NeighborIndex | None = None,
+) -> _Queries:
     """Pair force in N on particle ``query_index[q]`` placed at ``query[q]``.
 
     Every other real particle ``j`` sits at ``position[j]``. This is

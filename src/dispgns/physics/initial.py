@@ -11,7 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.typing import DTypeLike
 
+from dispgns.arrays import Frame, ParticleMask, PRNGKey, Radii
 from dispgns.capacity import Attempt, coarse_ladder, drive, ladder
 from dispgns.physics.config import PhysicsConfig
 
@@ -35,9 +37,9 @@ class InitialState(NamedTuple):
       were placed in.
     """
 
-    position: jnp.ndarray
-    velocity: jnp.ndarray
-    radius: jnp.ndarray
+    position: Frame
+    velocity: Frame
+    radius: Radii
     start_height: float
 
 
@@ -123,8 +125,15 @@ def _cell_capacity_bound(grid: _Grid, min_radius: float, n: int) -> int:
 
 
 def place_particles(
-    key, radius, start_height, config: PhysicsConfig, *, dim: int = 2, candidates: int = 64, max_rounds: int = 64
-):
+    key: PRNGKey,
+    radius: Radii,
+    start_height: float,
+    config: PhysicsConfig,
+    *,
+    dim: int = 2,
+    candidates: int = 64,
+    max_rounds: int = 64,
+) -> tuple[Frame, ParticleMask]:
     """Place particles one at a time, in index order, without overlap (jit-compiled, cost linear in N).
 
     Particle ``i`` is drawn uniformly in ``[-h_d + a_i, h_d - a_i]`` on every
@@ -276,14 +285,14 @@ def _place(key, radius, start_height, n_real, state, half_sizes, grid: _Grid, ca
 
 
 def sample_initial_state(
-    key: jax.Array,
+    key: PRNGKey,
     radii_choices: Sequence[float],
     config: PhysicsConfig = PhysicsConfig(),
     *,
     dim: int = 2,
     n_particles: int | None = None,
     start_height: float | None = None,
-    dtype=None,
+    dtype: DTypeLike | None = None,
     candidates: int = 64,
     max_rounds: int = 64,
     max_particles: int = MAX_PARTICLES,

@@ -31,14 +31,31 @@ import numpy as np
 from jax import lax
 from jax_md import dataclasses as md_dataclasses
 from jax_md import partition
+from jaxtyping import ArrayLike, Float
 
-from dispgns.arrays import host_array
+from dispgns.arrays import (
+    BatchFrame,
+    BatchMask,
+    BatchPositions,
+    BatchRadii,
+    Count,
+    Flag,
+    Frame,
+    FrameFlags,
+    ParticleMask,
+    Positions,
+    Radii,
+    host_array,
+)
 from dispgns.capacity import Attempt, coarse_ladder, drive, ladder
 from dispgns.physics.config import PhysicsConfig
 from dispgns.physics.forces import external_force, interaction_force, neighbor_force, neighbor_table, particle_mass
-from dispgns.physics.walls import resolve_walls
+from dispgns.physics.walls import WallCounts, resolve_walls
 from dispgns.tuning import jitted
 from dispgns.validation import check_particles
+
+# One frame ``(N, D)`` or a batch of them ``(B, N, D)``.
+_OneOrBatch = Float[ArrayLike, "*B N D"]
 
 __all__ = [
     "PhysicsCapacity",
@@ -73,16 +90,16 @@ class SimState:
       step: int32, Euler steps taken.
     """
 
-    position: jnp.ndarray
-    velocity: jnp.ndarray
-    radius: jnp.ndarray
-    mask: jnp.ndarray
-    mass: jnp.ndarray
-    external: jnp.ndarray
-    wall_hits: jnp.ndarray
-    corner_events: jnp.ndarray
-    overflow: jnp.ndarray
-    step: jnp.ndarray
+    position: Frame
+    velocity: Frame
+    radius: Radii
+    mask: ParticleMask
+    mass: Radii
+    external: Frame
+    wall_hits: WallCounts
+    corner_events: Count
+    overflow: Flag
+    step: Count
 
 
 def _far_away_positions(count: int, dim: int, spacing: float, box_half_size: float, dtype) -> jnp.ndarray:
@@ -286,8 +303,11 @@ def neighbor_fn_for(config: PhysicsConfig, dim: int) -> partition.NeighborListFn
 
 
 def update_neighbors(
-    neighbors: partition.NeighborList, position: jnp.ndarray, config: PhysicsConfig, velocity: jnp.ndarray | None = None
-):
+    neighbors: partition.NeighborList,
+    position: _OneOrBatch,
+    config: PhysicsConfig,
+    velocity: _OneOrBatch | None = None,
+) -> partition.NeighborList:
     """Rebuild ``neighbors`` when the coming step could need a pair it lacks.
 
     A list built at radius ``cutoff + skin`` holds every pair the step needs
@@ -319,7 +339,9 @@ def update_neighbors(
     return lax.cond(due, rebuild, lambda: neighbors)
 
 
-def euler_integrator(config: PhysicsConfig, *, collision_capacity: int | None = None):
+def euler_integrator(
+    config: PhysicsConfig, *, collision_capacity: int | None = None
+) -> tuple[Callable[..., SimState], Callable[..., SimState]]:
     """The model's explicit-Euler integrator as a pair of pure functions.
 
     Args:
@@ -475,20 +497,20 @@ class SimulatedFrames(NamedTuple):
         exceeded the collision capacity on (those frames are NaN).
     """
 
-    position: jnp.ndarray
-    velocity: jnp.ndarray
-    overflow: jnp.ndarray
+    position: Positions
+    velocity: Positions
+    overflow: FrameFlags
 
 
 def simulate_scan(
-    x0,
-    v0,
-    radius,
+    x0: Frame,
+    v0: Frame,
+    radius: Radii,
     config: PhysicsConfig = PhysicsConfig(),
     *,
     n_frames: int,
     save_every: int = 15,
-    mask=None,
+    mask: ParticleMask | None = None,
     collision_capacity: int | None = None,
 ) -> SimulatedFrames:
     """Simulate one trajectory as one ``lax.scan`` (pure: ``jit``, ``vmap``, ``grad``).
@@ -595,19 +617,19 @@ def _check_state(x0, v0, radius, mask, config: PhysicsConfig) -> None:
 
 
 def simulate(
-    x0,
-    v0,
-    radius,
+    x0: Frame,
+    v0: Frame,
+    radius: Radii,
     config: PhysicsConfig = PhysicsConfig(),
     *,
     n_frames: int,
     save_every: int = 15,
-    mask=None,
+    mask: ParticleMask | None = None,
     return_velocity: bool = False,
     collision_capacity: int | None | str = "auto",
     chunk_frames: int = 50,
     compiler_options: Mapping[str, Any] | None = None,
-):
+) -> Positions | tuple[Positions, Positions]:
     """Simulate one trajectory and return its saved frames (host; :func:`simulate_scan` is the pure core).
 
     The frames are computed in compiled chunks; after a chunk that overflowed
@@ -647,10 +669,10 @@ def simulate(
 
 
 def simulate_batch(
-    x0,
-    v0,
-    radius,
-    mask,
+    x0: BatchFrame,
+    v0: BatchFrame,
+    radius: BatchRadii,
+    mask: BatchMask | None,
     config: PhysicsConfig = PhysicsConfig(),
     *,
     n_frames: int,
@@ -660,7 +682,7 @@ def simulate_batch(
     chunk_frames: int = 50,
     compiler_options: Mapping[str, Any] | None = None,
     progress: Callable[[int], None] | None = None,
-):
+) -> BatchPositions | tuple[BatchPositions, BatchPositions]:
     """Simulate B trajectories with different particle counts in one vmapped call (host).
 
     Trajectories are padded to a common ``N``; padding particles

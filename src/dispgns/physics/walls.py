@@ -17,17 +17,25 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 from jax import lax
+from jaxtyping import ArrayLike, Float, Int
 
+from dispgns.arrays import Count, Flag, Frame, ParticleMask, Radii
 from dispgns.physics.config import PhysicsConfig
 
+# Per wall (axis 0 upper, axis 0 lower, axis 1 upper, ...), W = 2 D.
+WallCounts = Int[ArrayLike, "W"]
+
 __all__ = [
+    "WallCounts",
     "WallResult",
     "resolve_walls",
 ]
 
 # force_at(query (Q, D), query_index (Q,)) -> (Q, D): interaction force in N
 # on particle query_index[q] placed at query[q], all others where they started.
-ForceAtFn = Callable[[jnp.ndarray, jnp.ndarray], jnp.ndarray]
+_Queries = Float[ArrayLike, "Q D"]
+_QueryIndex = Int[ArrayLike, "Q"]
+ForceAtFn = Callable[[_Queries, _QueryIndex], _Queries]
 
 
 class WallResult(NamedTuple):
@@ -43,11 +51,11 @@ class WallResult(NamedTuple):
         step's result is then wrong and must be recomputed with more capacity.
     """
 
-    position: jnp.ndarray
-    velocity: jnp.ndarray
-    wall_hits: jnp.ndarray
-    corner_events: jnp.ndarray
-    overflow: jnp.ndarray
+    position: Frame
+    velocity: Frame
+    wall_hits: WallCounts
+    corner_events: Count
+    overflow: Flag
 
 
 def _select_axis(on_axis: list, columns: list) -> jnp.ndarray:
@@ -59,15 +67,15 @@ def _select_axis(on_axis: list, columns: list) -> jnp.ndarray:
 
 
 def resolve_walls(
-    position: jnp.ndarray,
-    velocity: jnp.ndarray,
-    euler_position: jnp.ndarray,
-    euler_velocity: jnp.ndarray,
-    start_force: jnp.ndarray,
-    radius: jnp.ndarray,
-    mass: jnp.ndarray,
-    external: jnp.ndarray,
-    mask: jnp.ndarray,
+    position: Frame,
+    velocity: Frame,
+    euler_position: Frame,
+    euler_velocity: Frame,
+    start_force: Frame,
+    radius: Radii,
+    mass: Radii,
+    external: Frame,
+    mask: ParticleMask,
     config: PhysicsConfig,
     force_at: ForceAtFn,
     capacity: int | None = None,

@@ -9,7 +9,11 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
+
+# dispgns.model and dispgns.arrays import JAX and Flax: named through the package, not imported here, so
+# reading the shipped configs stays fast (the annotations below resolve when read).
+import dispgns
 
 __all__ = [
     "CONFIG_NAMES",
@@ -81,7 +85,9 @@ def pretrained_path(name: str = DEFAULT_MODEL) -> Path:
     return path
 
 
-def load_pretrained(name: str = DEFAULT_MODEL):
+def load_pretrained(
+    name: str = DEFAULT_MODEL,
+) -> tuple[dispgns.arrays.Params, dispgns.model.ModelConfig, dict[str, Any]]:
     """The shipped model: ``(params, model_config, info)``.
 
     Args:

@@ -31,8 +31,11 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jaxtyping import ArrayLike, Bool, Float, Int
 
-from dispgns.arrays import node_budget
+import dispgns
+from dispgns.arrays import BatchMask, BatchRadii, node_budget
+from dispgns.data import Trajectory
 from dispgns.graph import (
     Bounds,
     GraphCapacity,
@@ -45,6 +48,15 @@ from dispgns.graph import (
     host_max_cell_occupancy,
     uses_cell_list,
 )
+from dispgns.model import ModelConfig
+
+# Shapes (jaxtyping, no runtime check): B examples of W = C + 1 + k frames each, example ids.
+_BatchFrames = Float[ArrayLike, "B W N D"]
+_ExampleIds = Int[ArrayLike, "B 2"]
+_Ids = Int[ArrayLike, "K"]
+_Horizontal = Float[ArrayLike, "*shape 2"]
+_Flips = Bool[ArrayLike, "B D-1"]
+_Turns = Int[ArrayLike, "B"]
 
 __all__ = ["Batch", "BatchStream", "ExampleIndex", "example_index", "quarter_turns"]
 
@@ -68,10 +80,10 @@ class Batch:
         ``None``: ``B`` times the slots of one example's graph.
     """
 
-    position: jnp.ndarray
-    radius: jnp.ndarray
-    mask: jnp.ndarray
-    example: jnp.ndarray
+    position: _BatchFrames
+    radius: BatchRadii
+    mask: BatchMask
+    example: _ExampleIds
     capacity: GraphCapacity = struct.field(pytree_node=False)
     edge_budget: int | None = struct.field(pytree_node=False, default=None)
 
@@ -116,7 +128,7 @@ def example_index(frame_counts: Sequence[int], window: int) -> ExampleIndex:
     )
 
 
-def quarter_turns(xy, turns: int):
+def quarter_turns(xy: _Horizontal, turns: int) -> _Horizontal:
     """``xy`` ``(..., 2)`` (the horizontal components) turned by ``turns`` quarter turns counter-clockwise.
 
     One turn maps ``(x, y)`` to ``(-y, x)``: a rotation by 90 degrees about the vertical axis,
@@ -172,7 +184,7 @@ class BatchStream:
 
     def __init__(
         self,
-        trajectories: Sequence[Any],
+        trajectories: Sequence[Trajectory],
         *,
         input_sequence_length: int,
         batch_size: int,
@@ -266,7 +278,14 @@ class BatchStream:
         self.position = 0
 
     @classmethod
-    def for_training(cls, trajectories, model_config, train_config, **kwargs) -> BatchStream:
+    def for_training(
+        cls,
+        trajectories: Sequence[Trajectory],
+        model_config: ModelConfig,
+        # step.py imports this module, so TrainConfig is named through the package (resolved when read).
+        train_config: dispgns.training.step.TrainConfig,
+        **kwargs: Any,
+    ) -> BatchStream:
         """The stream a run with these configs needs (``C``, ``B``, radius, seed, pushforward, box)."""
         return cls(
             trajectories,
@@ -300,7 +319,7 @@ class BatchStream:
         n_max = max(self.positions[t].shape[1] for t in self.index.trajectory[np.asarray(ids, np.int64)])
         return next(b for b in self.node_budgets if b >= n_max)
 
-    def capacity_for(self, ids) -> GraphCapacity:
+    def capacity_for(self, ids: _Ids) -> GraphCapacity:
         """Graph capacity of each example of a batch of examples ``ids`` (on the ladder)."""
         ids = np.asarray(ids, np.int64)
         pairs = self.pairs.max() if self.compact_edges else self.pairs[ids].max()
@@ -312,7 +331,7 @@ class BatchStream:
             extra=self.capacity_extra,
         )
 
-    def edge_budget_for(self, ids) -> int | None:
+    def edge_budget_for(self, ids: _Ids) -> int | None:
         """Edge slots of the merged graph of one shard of examples ``ids`` (on the ladder; ``None``: no compaction).
 
         With ``shards`` parts, the budget of the part that needs most (every
@@ -331,13 +350,13 @@ class BatchStream:
         return batch.with_capacity(grow_capacity(batch.capacity, n), budget)
 
     # -- order ---------------------------------------------------------------------------------
-    def epoch_order(self, epoch: int) -> np.ndarray:
+    def epoch_order(self, epoch: int) -> _Ids:
         """Example ids of ``epoch`` in the order they are drawn."""
         if not self.shuffle:
             return np.arange(self.num_examples)
         return np.random.default_rng([self.seed, int(epoch)]).permutation(self.num_examples)
 
-    def batch_examples(self, i: int) -> np.ndarray:
+    def batch_examples(self, i: int) -> _Ids:
         """Example ids of batch ``i`` (counting from the start of training)."""
         if i < 0:
             raise ValueError(f"batch index must be >= 0, got {i}")
@@ -370,9 +389,9 @@ class BatchStream:
     def make_batch(
         self,
         ids: Sequence[int],
-        flips: np.ndarray | None = None,
+        flips: _Flips | None = None,
         *,
-        turns: np.ndarray | None = None,
+        turns: _Turns | None = None,
         nodes: int | None = None,
     ) -> Batch:
         """A padded batch of the given example ids.

@@ -42,6 +42,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization
 
+from dispgns.arrays import Params
 from dispgns.files import staged_directory, write_atomic
 from dispgns.model import ModelConfig, init_params
 from dispgns.training.loggers import json_safe
@@ -422,7 +423,7 @@ class Checkpointer:
 
 
 def export_model(
-    directory: str | os.PathLike, params, model_config: ModelConfig, record: Mapping[str, Any] | None = None
+    directory: str | os.PathLike, params: Params, model_config: ModelConfig, record: Mapping[str, Any] | None = None
 ) -> Path:
     """Write a model directory (``params.msgpack`` + ``model.json``), replacing it atomically.
 
@@ -448,7 +449,7 @@ def export_model(
     return directory
 
 
-def load_model(directory: str | os.PathLike) -> tuple[dict, ModelConfig, dict[str, Any]]:
+def load_model(directory: str | os.PathLike) -> tuple[Params, ModelConfig, dict[str, Any]]:
     """Read a model directory written by :func:`export_model`.
 
     Returns:
@@ -511,7 +512,7 @@ def restore_template(
     return create_train_state(jax.random.key(0), model_config, train_config, normalization)
 
 
-def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[dict, ModelConfig, dict[str, Any]]:
+def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[Params, ModelConfig, dict[str, Any]]:
     """Parameters from an exported model directory or a training run directory.
 
     Args:

@@ -17,22 +17,24 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dispgns.arrays import stack_padded
+from dispgns.arrays import Params, PRNGKey, stack_padded
 from dispgns.capacity import Attempt, drive
+from dispgns.data import Trajectory
 from dispgns.metrics import per_frame_mse
 from dispgns.model import ModelConfig
 from dispgns.simulator import fit_capacity, rollout_batch
 from dispgns.training.batches import BatchStream
+from dispgns.training.distributed import DataParallel
 from dispgns.training.step import TrainConfig, TrainState, loss_fn, train_step_checked
 from dispgns.tuning import jitted
 
-__all__ = ["LoopResult", "NonFiniteLossError", "Validator", "train"]
+__all__ = ["LoopResult", "NonFiniteLossError", "Saver", "Validator", "train"]
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -45,7 +47,7 @@ class NonFiniteLossError(FloatingPointError):
         checkpointer.
     """
 
-    def __init__(self, message: str, *, step: int, value: float, state):
+    def __init__(self, message: str, *, step: int, value: float, state: TrainState):
         super().__init__(message)
         self.step, self.value, self.state = step, value, state
 
@@ -70,7 +72,7 @@ class Validator:
 
     def __init__(
         self,
-        trajectories: Sequence[Any],
+        trajectories: Sequence[Trajectory],
         model_config: ModelConfig,
         train_config: TrainConfig,
         *,
@@ -156,6 +158,20 @@ def _clean_loss(params, batch, *, model_config, train_config):
     return loss, aux["overflow"]
 
 
+class Saver(Protocol):
+    """What :func:`train` needs of a checkpointer (:class:`~dispgns.training.checkpoint.Checkpointer` is one)."""
+
+    def save(
+        self,
+        state: TrainState,
+        key: PRNGKey,
+        *,
+        data_position: int,
+        validation: Mapping[str, Any] | None = None,
+        validation_value: float | None = None,
+    ) -> None: ...
+
+
 @dataclasses.dataclass
 class LoopResult:
     """What :func:`train` returns: the final state and why it stopped."""
@@ -168,15 +184,15 @@ class LoopResult:
 def train(
     state: TrainState,
     stream: BatchStream,
-    key: jax.Array,
+    key: PRNGKey,
     *,
     until_step: int | None = None,
-    validator: Callable[[Any], Mapping[str, Any]] | None = None,
-    checkpointer=None,
+    validator: Callable[[Params], Mapping[str, Any]] | None = None,
+    checkpointer: Saver | None = None,
     on_step: Callable[[int, Mapping[str, float]], None] | None = None,
     on_log: Callable[[Mapping[str, Any]], None] | None = None,
     compiler_options: Mapping[str, Any] | None = None,
-    parallel=None,
+    parallel: DataParallel | None = None,
 ) -> LoopResult:
     """Train from ``state.step`` up to ``until_step`` (default ``train_config.num_steps``).
 

@@ -8,13 +8,17 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from dispgns.arrays import Frame, ParticleMask, PositionWindow, PRNGKey
+
 __all__ = [
     "random_walk_noise",
     "target_acceleration",
 ]
 
 
-def random_walk_noise(key: jax.Array, position_seq: jnp.ndarray, noise_std: float, mask=None) -> jnp.ndarray:
+def random_walk_noise(
+    key: PRNGKey, position_seq: PositionWindow, noise_std: float, mask: ParticleMask | None = None
+) -> PositionWindow:
     """Random-walk noise for a sequence of input positions (DeepMind's GNS recipe).
 
     Each of the ``C - 1`` velocities gets i.i.d. Gaussian increments of std
@@ -42,7 +46,7 @@ def random_walk_noise(key: jax.Array, position_seq: jnp.ndarray, noise_std: floa
     return position_noise
 
 
-def target_acceleration(next_position: jnp.ndarray, last_position: jnp.ndarray, input_seq: jnp.ndarray) -> jnp.ndarray:
+def target_acceleration(next_position: Frame, last_position: Frame, input_seq: PositionWindow) -> Frame:
     """Acceleration the model must predict from (possibly corrupted) inputs, per frame^2.
 
     ``(x_next - x_last) - (x~_last - x~_prev)``: the true next velocity

@@ -15,12 +15,14 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from dispgns.arrays import PerAxis
+from dispgns.data import Trajectory
 from dispgns.model import identity_normalization
 
 __all__ = ["compute_normalization", "identity_normalization"]
 
 
-def compute_normalization(trajectories: Iterable, *, noise_std: float = 0.0) -> dict[str, np.ndarray]:
+def compute_normalization(trajectories: Iterable[Trajectory], *, noise_std: float = 0.0) -> dict[str, PerAxis]:
     """Per-axis mean and std of ``v / a_i`` and ``acc / a_i`` over every frame of every trajectory.
 
     Velocities are ``x_{t+1} - x_t`` and accelerations ``x_{t+1} - 2 x_t +

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
@@ -31,8 +31,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 from jax import lax
+from jaxtyping import ArrayLike, PyTree, Shaped
 
+import dispgns
 from dispgns._config import check_fields, config_from_mapping
+from dispgns.arrays import Count, Flag, Params, PerAxis, PRNGKey, Scalar
 from dispgns.capacity import Attempt, drive
 from dispgns.graph import merged_edge_count
 from dispgns.model import ModelConfig, identity_normalization, init_params
@@ -40,6 +43,9 @@ from dispgns.simulator import build_graph, network_output_batch, predict_step_ba
 from dispgns.training.batches import Batch, BatchStream
 from dispgns.training.noise import random_walk_noise, target_acceleration
 from dispgns.tuning import jitted
+
+# optax's Adam state: a pytree of arrays of any shape and dtype (step counts, moments).
+_OptState = PyTree[Shaped[ArrayLike, "..."]]
 
 __all__ = [
     "TrainConfig",
@@ -136,7 +142,7 @@ class TrainConfig:
         return config_from_mapping(cls, values)
 
 
-def learning_rate_schedule(train_config: TrainConfig):
+def learning_rate_schedule(train_config: TrainConfig) -> Callable[[Count | int], Scalar]:
     """``step -> max(lr * decay ** (step / decay_steps), min_lr)`` (an optax schedule)."""
     c = train_config
 
@@ -167,15 +173,18 @@ class TrainState:
     restore into the structure of :func:`create_train_state`.
     """
 
-    params: Any
-    opt_state: Any
-    step: jnp.ndarray
+    params: Params
+    opt_state: _OptState
+    step: Count
     model_config: ModelConfig = struct.field(pytree_node=False)
     train_config: TrainConfig = struct.field(pytree_node=False)
 
 
 def create_train_state(
-    key: jax.Array, model_config: ModelConfig, train_config: TrainConfig, normalization: Mapping[str, Any] | None = None
+    key: PRNGKey,
+    model_config: ModelConfig,
+    train_config: TrainConfig,
+    normalization: Mapping[str, PerAxis] | None = None,
 ) -> TrainState:
     """Fresh parameters and optimiser state.
 
@@ -273,14 +282,14 @@ def _prepare_batch(
 
 
 def loss_fn(
-    network,
-    normalization,
+    network: Params,
+    normalization: Mapping[str, PerAxis],
     batch: Batch,
-    key: jax.Array,
+    key: PRNGKey,
     model_config: ModelConfig,
     train_config: TrainConfig,
     axis_name: str | None = None,
-):
+) -> tuple[Scalar, dict[str, Flag]]:
     """Mean over the real particles of the batch of the squared error summed over D.
 
     The ``B`` examples are evaluated as one disjoint graph
@@ -307,7 +316,9 @@ def loss_fn(
 
 
 @functools.partial(jax.jit, static_argnames=("axis_name",))
-def train_step(state: TrainState, batch: Batch, key: jax.Array, *, axis_name: str | None = None):
+def train_step(
+    state: TrainState, batch: Batch, key: PRNGKey, *, axis_name: str | None = None
+) -> tuple[TrainState, dict[str, Scalar | Flag]]:
     """One optimiser step (pure and jitted; compiles once per batch shape and capacity).
 
     Args:
@@ -362,11 +373,12 @@ def train_step(state: TrainState, batch: Batch, key: jax.Array, *, axis_name: st
 def train_step_checked(
     state: TrainState,
     batch: Batch,
-    key: jax.Array,
+    key: PRNGKey,
     *,
     compiler_options: Mapping[str, Any] | None = None,
-    parallel=None,
-):
+    # distributed.py imports this module, so DataParallel is named through the package (resolved when read).
+    parallel: dispgns.training.distributed.DataParallel | None = None,
+) -> tuple[TrainState, dict[str, Scalar | Flag], Batch]:
     """:func:`train_step` with the graph capacity grown until no graph overflows (host).
 
     Args:
