@@ -127,6 +127,7 @@ PHYSICS_CASES = [
     ("coincident particles", lambda: _edit(position=((1, 0), -0.05)), ["particles 0 and 1", "overlap"]),
     ("deep overlap", lambda: _edit(position=((1, 0), 0.049)), ["particles 1 and 2", "overlap"]),
     ("no particles", lambda: (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)), ["no particles"]),
+    ("a particle wider than the box", lambda: _edit(radius=(1, 0.15)), ["radius", "particle 1", "half-size 0.1"]),
 ]
 
 
@@ -526,3 +527,35 @@ def test_a_sigterm_becomes_an_interrupt_with_status_143(tmp_path):
         time.sleep(5)
     assert interrupted_status() == 143
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+def test_a_checkpoint_that_cannot_be_written_is_an_oserror_naming_its_folder(tmp_path):
+    from dispgns.training.checkpoint import Checkpointer
+
+    state, config = _saved_run(tmp_path, TINY, steps=(10,))
+    saving = Checkpointer(tmp_path, keep=5, config=config)
+    # The checkpoints folder becomes unwritable: a file stands where it was (chmod does not stop root).
+    (tmp_path / "checkpoints").rename(tmp_path / "kept")
+    (tmp_path / "checkpoints").write_text("not a folder\n")
+    try:
+        with pytest.raises(OSError) as info:
+            saving.save(state.replace(step=jnp.asarray(20, state.step.dtype)), jax.random.key(1), data_position=20)
+    finally:
+        saving.close()
+    assert info.value.filename == str(tmp_path / "checkpoints" / "20"), info.value
+    assert (tmp_path / "kept" / "10").is_dir()
+
+
+@pytest.mark.parametrize("bounds", ["box", 5, [[0, "x"], [1, 2]], [1, 2]])
+def test_malformed_bounds_in_metadata_name_the_field(bounds, tiny_dataset, tmp_path):
+    import shutil
+
+    from dispgns.data import DatasetError, read_metadata
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    values = json.loads((data / "metadata.json").read_text())
+    values["bounds"] = bounds
+    (data / "metadata.json").write_text(json.dumps(values))
+    with pytest.raises(DatasetError, match=r"metadata.json: 'bounds' is .* pair of numbers per axis"):
+        read_metadata(data)

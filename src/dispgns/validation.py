@@ -11,7 +11,8 @@ checked. The pure cores (``simulate_scan``, ``predict_step``,
 What is checked, and the tolerances:
 
 - **finite**: positions, velocities and radii hold no NaN or inf;
-- **radii**: every radius is ``> 0``;
+- **radii**: every radius is ``> 0`` (and, for the physics, below the box's
+  smallest half-size: a wider particle cannot fit between two walls);
 - **inside the box**: every centre lies inside the box ``[lo, hi]`` on every
   axis (the body may overlap a wall by up to its radius, which soft walls
   allow; a centre beyond the wall is outside);
@@ -102,16 +103,30 @@ def check_finite(array, name: str, *, mask=None, particle_axis: int = -2) -> Non
         )
 
 
-def check_radii(radius, name: str = "radius", *, mask=None) -> None:
-    """Raise if a real particle's radius is not finite and ``> 0`` (``radius``: ``(N,)`` or ``(B, N)``)."""
+def check_radii(radius, name: str = "radius", *, mask=None, below: float | None = None, box: str = "") -> None:
+    """Raise if a real particle's radius is not finite and ``> 0`` (``radius``: ``(N,)`` or ``(B, N)``).
+
+    ``below``: also refuse radii ``>= below`` (the box's smallest half-size
+    for the physics; ``box`` names it in the message).
+    """
     a = np.asarray(radius)
-    bad = ~(np.isfinite(a) & (a > 0)) & _real(mask, a.shape)
+    real = _real(mask, a.shape)
+    bad = ~(np.isfinite(a) & (a > 0)) & real
     if bad.any():
         index = tuple(int(i) for i in np.argwhere(bad)[0])
         raise ValueError(
             f"{name} must be finite and > 0 for every real particle: {_where(index, a.ndim)} has "
             f"{float(a[index])!r} ({int(bad.sum())} bad value(s))"
         )
+    if below is not None:
+        wide = (a >= below) & real
+        if wide.any():
+            index = tuple(int(i) for i in np.argwhere(wide)[0])
+            raise ValueError(
+                f"{name}: {_where(index, a.ndim)} has radius {float(a[index]):.4g}, not below the smallest "
+                f"half-size {below:g} of {box or 'the box'} ({int(wide.sum())} such particle(s)); a particle that "
+                f"wide cannot fit between two walls (are the radii in the right units?)"
+            )
 
 
 def check_inside_box(position, radius, bounds: Sequence[Sequence[float]], name: str, *, mask=None, box: str) -> None:
@@ -208,6 +223,7 @@ def check_particles(
     radius_name: str = "radius",
     overlaps: bool = True,
     model_connectivity_radius: float | None = None,
+    radius_below: float | None = None,
 ) -> None:
     """Every check above, in order, on one state (``position`` ``(N, D)`` or ``(B, N, D)``; host arrays).
 
@@ -215,7 +231,8 @@ def check_particles(
     ``radius`` has none: ``(C, N, D)`` for ``(N,)`` radii, ``(B, C, N, D)``
     for ``(B, N)``; the box, overlap and units checks then use the last frame.
     ``model_connectivity_radius``: check normalised units for a model with
-    that graph radius (``None``: no units check).
+    that graph radius (``None``: no units check). ``radius_below``: refuse
+    radii at or above it (:func:`check_radii`).
     """
     x = np.asarray(position)
     a = np.asarray(radius)
@@ -227,7 +244,7 @@ def check_particles(
         x = x[:, -1] if batched else x[-1]
     else:
         check_finite(x, position_name, mask=m)
-    check_radii(a, radius_name, mask=m)
+    check_radii(a, radius_name, mask=m, below=radius_below, box=box)
     if velocity is not None:
         check_finite(velocity, velocity_name, mask=m)
     if model_connectivity_radius is not None:

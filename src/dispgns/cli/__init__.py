@@ -65,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     from dispgns.cli._common import interrupted_status, reset_interrupts
 
     reset_interrupts()
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = _without_closed_loop_reports(previous_hook)
     try:
         return int(args.func(args) or 0)
     except CLIError as error:
@@ -73,6 +75,28 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dispgns {args.command}: interrupted", file=sys.stderr)
         return interrupted_status()
+    finally:
+        sys.unraisablehook = previous_hook
+
+
+def _without_closed_loop_reports(hook):
+    """``hook`` (``sys.unraisablehook``), silent for TensorStore's reports of a closed event loop.
+
+    When a checkpoint write fails part-way (a file system turned read-only),
+    orbax closes its per-operation event loop at the first error while
+    TensorStore still completes the other writes; each completion then finds
+    the loop closed and TensorStore prints ``RuntimeError: Event loop is
+    closed`` as an unraisable exception (tens of tracebacks before the one
+    error line the command prints). Nothing is lost: the save has failed
+    already and says so. Every other report reaches ``hook``.
+    """
+
+    def report(unraisable):
+        if isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed":
+            return
+        hook(unraisable)
+
+    return report
 
 
 def entry() -> None:

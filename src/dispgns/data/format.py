@@ -403,7 +403,13 @@ class DatasetMetadata:
         if self.bounds is None:
             object.__setattr__(self, "bounds", self.expected_bounds())
         else:
-            object.__setattr__(self, "bounds", tuple(tuple(float(v) for v in pair) for pair in self.bounds))
+            try:
+                bounds = tuple(tuple(float(v) for v in pair) for pair in self.bounds)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"'bounds' is {self.bounds!r}, expected one [lo, hi] pair of numbers per axis"
+                ) from None
+            object.__setattr__(self, "bounds", bounds)
         for name in _STAT_KEYS + ("position_offset",):
             value = getattr(self, name)
             if value is not None and not isinstance(value, (str, bytes)) and isinstance(value, Iterable):
@@ -709,7 +715,14 @@ class DatasetMetadata:
             if values.get("num_particles_max") == max(max(v) for v in counts.values()):
                 values.pop("num_particles_max")  # no padding: derived from particle_counts
         if values.get("bounds") is not None:
-            values["bounds"] = tuple(tuple(pair) for pair in values["bounds"])
+            raw = values["bounds"]
+            if (
+                not isinstance(raw, Sequence)
+                or isinstance(raw, str)
+                or not all(isinstance(p, Sequence) and not isinstance(p, str) for p in raw)
+            ):
+                _fail(where, f"'bounds' is {raw!r}, expected one [lo, hi] pair of numbers per axis")
+            values["bounds"] = tuple(tuple(pair) for pair in raw)
             offset = values.get("position_offset")
             if isinstance(offset, Sequence) and len(offset) == len(values["bounds"]):
                 # metadata.json shows the stored (shifted) box; the object keeps the normalised one.

@@ -613,6 +613,7 @@ def _check_state(x0, v0, radius, mask, config: PhysicsConfig) -> None:
         box=f"the box ({box})",
         position_name="x0",
         velocity_name="v0",
+        radius_below=min(halves),
     )
 
 

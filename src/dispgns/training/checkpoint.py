@@ -26,7 +26,9 @@ library modules that write files, and only at the paths they are given.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
+import logging
 import os
 import re
 import shutil
@@ -240,6 +242,30 @@ def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[s
     }
 
 
+class _DropThreadFailures(logging.Filter):
+    """Drops orbax's log records of a failed save thread (with their tracebacks): the save raises it anyway."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.levelno >= logging.ERROR and "raised an exception" in record.getMessage())
+
+
+@contextlib.contextmanager
+def _quiet_orbax_threads():
+    """While saving, orbax's worker threads log a failure (a read-only or full disk) with a traceback.
+
+    The failure reaches the caller as one ``OSError`` (:meth:`Checkpointer._save`);
+    only those records of orbax's logger (``absl``) are dropped, and only
+    during the save.
+    """
+    logger = logging.getLogger("absl")
+    quiet = _DropThreadFailures()
+    logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        logger.removeFilter(quiet)
+
+
 @contextlib.contextmanager
 def _interrupts_held():
     """Hold Ctrl-C and SIGTERM back until the block is done, then deliver the first one received.
@@ -339,13 +365,32 @@ class Checkpointer:
         args = ocp.args.Composite(state=ocp.args.StandardSave(tree), extra=ocp.args.JsonSave(extra))
         with _interrupts_held():
             if self._last.latest_step() != step:
-                self._last.save(step, args=args)
-                self._last.wait_until_finished()
+                self._save(self._last, step, args)
             if validation_value is not None and np.isfinite(validation_value) and validation_value < self.best_value:
                 if self._best.latest_step() != step:
-                    self._best.save(step, args=args)
-                    self._best.wait_until_finished()
+                    self._save(self._best, step, args)
                 self.best_value = float(validation_value)
+
+    @staticmethod
+    def _save(manager, step: int, args) -> None:
+        """One orbax save; a failed write becomes an ``OSError`` naming the checkpoint folder.
+
+        Orbax and TensorStore raise ``OSError`` without a file name (a
+        read-only file system) or other types carrying the system's message
+        (a full disk); the caller needs the place and the reason in one line.
+        """
+        where = str(Path(manager.directory) / str(step))
+        try:
+            with _quiet_orbax_threads():
+                manager.save(step, args=args)
+                manager.wait_until_finished()
+        except OSError as error:
+            raise OSError(error.errno or errno.EIO, error.strerror or _reason(error), where) from None
+        except Exception as error:  # TensorStore's write errors are ValueErrors carrying the OS error's code
+            code = re.search(r"os_error_code='?(\d+)", str(error))
+            if code is not None:
+                raise OSError(int(code.group(1)), os.strerror(int(code.group(1))), where) from None
+            raise OSError(errno.EIO, f"the checkpoint could not be written ({_reason(error)})", where) from None
 
     def restore(
         self, template: TrainState, key: jax.Array, *, step: int | None = None, best: bool = False
