@@ -20,11 +20,13 @@ import pytest
 # The packages whose ``__all__`` is the public API held to the promise.
 MODULES = (
     "dispgns",
+    "dispgns.arrays",
     "dispgns.physics",
     "dispgns.metrics",
     "dispgns.data",
     "dispgns.graph",
     "dispgns.features",
+    "dispgns.model",
     "dispgns.simulator",
     "dispgns.training",
     "dispgns.evaluation",

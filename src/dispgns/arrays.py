@@ -16,7 +16,8 @@ from typing import Any
 
 import jax
 import numpy as np
-from jaxtyping import ArrayLike, Bool, Float, Int, PRNGKeyArray, PyTree
+from jax.typing import DTypeLike
+from jaxtyping import ArrayLike, Bool, Float, Int, PRNGKeyArray, PyTree, Shaped
 
 __all__ = [
     "BatchFrame",
@@ -70,9 +71,12 @@ BatchMask = Bool[ArrayLike, "B N"]
 PRNGKey = PRNGKeyArray
 # The network's parameters: a pytree of float arrays of any shape (``init_params``, checkpoints).
 Params = PyTree[Float[ArrayLike, "..."]]
+# Any shape and dtype (the host helpers below work on every array).
+_AnyArray = Shaped[ArrayLike, "..."]
+_HostArray = Shaped[np.ndarray, "..."]
 
 
-def host_array(x, name: str, *, pure: str | None = None) -> np.ndarray:
+def host_array(x: _AnyArray, name: str, *, pure: str | None = None) -> _HostArray:
     """``x`` as a numpy array; a clear ``ValueError`` when it is traced (inside ``jit``, ``vmap``, ``grad``).
 
     Args:
@@ -92,7 +96,7 @@ def node_budget(counts: Sequence[int], *, multiple: int = 8) -> int:
     return int(multiple * math.ceil(max(int(c) for c in counts) / multiple))
 
 
-def pad_particles(array: np.ndarray, count: int, *, axis: int, fill: Any) -> np.ndarray:
+def pad_particles(array: _AnyArray, count: int, *, axis: int, fill: float | bool) -> _HostArray:
     """``array`` with ``count`` padding rows of ``fill`` appended along the particle ``axis``."""
     array = np.asarray(array)
     if count <= 0:
@@ -103,8 +107,8 @@ def pad_particles(array: np.ndarray, count: int, *, axis: int, fill: Any) -> np.
 
 
 def stack_padded(
-    trajectories: Sequence[Any], *, frames: int, budget: int | None = None, dtype=np.float32
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    trajectories: Sequence[Any], *, frames: int, budget: int | None = None, dtype: DTypeLike = np.float32
+) -> tuple[BatchPositions, BatchRadii, BatchMask]:
     """The first ``frames`` frames of trajectories of any particle counts, stacked on one particle budget.
 
     Args:

@@ -34,11 +34,24 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
+from jaxtyping import ArrayLike, Float, Int, PyTree, Shaped
 
 from dispgns._config import check_fields, config_from_mapping
-from dispgns.arrays import Params, PerAxis, PRNGKey
+from dispgns.arrays import Frame, Params, PerAxis, PRNGKey
 from dispgns.features import edge_feature_size, node_feature_size
 from dispgns.graph import Bounds, as_bounds
+
+# Shapes (jaxtyping, no runtime check): F node and G edge features, E edges, K inputs and H outputs of a
+# layer, O of an MLP.
+_NodeFeatures = Float[ArrayLike, "N F"]
+_EdgeFeatures = Float[ArrayLike, "E G"]
+_EdgeIndex = Int[ArrayLike, "E"]
+_Inputs = Float[ArrayLike, "*batch K"]
+_Kernel = Float[ArrayLike, "K H"]
+_Hidden = Float[ArrayLike, "*batch H"]
+_Outputs = Float[ArrayLike, "*batch O"]
+_Tree = PyTree[Shaped[ArrayLike, "..."]]
 
 __all__ = [
     "MLP",
@@ -149,13 +162,13 @@ class Dense(nn.Module):
 
     in_features: int
     features: int
-    matmul_dtype: Any = None
+    matmul_dtype: DTypeLike | None = None
 
-    def setup(self):
+    def setup(self) -> None:
         self.kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.in_features, self.features))
         self.bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
 
-    def dot(self, x, kernel):
+    def dot(self, x: _Inputs, kernel: _Kernel) -> _Outputs:
         if self.matmul_dtype is None:
             return jnp.dot(x, kernel)
         return jnp.dot(
@@ -175,24 +188,24 @@ class MLP(nn.Module):
     activation: Callable = jax.nn.relu
     layer_norm: bool = True
     epsilon: float = 1e-5
-    matmul_dtype: Any = None
+    matmul_dtype: DTypeLike | None = None
 
-    def setup(self):
+    def setup(self) -> None:
         sizes = (self.in_features, *self.hidden, self.out_features)
         self.layers = [self.dense(k, sizes[k], sizes[k + 1]) for k in range(len(sizes) - 1)]
         if self.layer_norm:
             self.norm = self.layer_norm_module()
 
-    def dense(self, index: int, fan_in: int, fan_out: int):
+    def dense(self, index: int, fan_in: int, fan_out: int) -> Dense:
         return Dense(fan_in, fan_out, self.matmul_dtype, name=f"Dense_{index}")
 
-    def layer_norm_module(self):
+    def layer_norm_module(self) -> nn.LayerNorm:
         return nn.LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
 
     def __call__(self, x):
         return self.after_first(self.layers[0](x))
 
-    def after_first(self, h):
+    def after_first(self, h: _Hidden) -> _Outputs:
         """The MLP applied to the output ``h (..., H)`` of its first Dense layer."""
         for layer in self.layers[1:]:
             h = layer(self.activation(h))
@@ -213,7 +226,7 @@ class InteractionBlock(nn.Module):
 
     config: ModelConfig
 
-    def setup(self):
+    def setup(self) -> None:
         c, width = self.config, self.config.latent_size
         self.message = _mlp(c, 3 * width, width, "message")
         self.node = _mlp(c, 2 * width, width, "node")
@@ -246,7 +259,7 @@ class EncodeProcessDecode(nn.Module):
 
     config: ModelConfig
 
-    def setup(self):
+    def setup(self) -> None:
         c = self.config
         self.node_encoder = _mlp(c, c.node_feature_size, c.latent_size, "node_encoder")
         self.edge_encoder = _mlp(c, c.edge_feature_size, c.latent_size, "edge_encoder")
@@ -324,14 +337,14 @@ def _init_network(key, config: ModelConfig):
 
 
 def apply_network(
-    network_params,
-    node_features: jnp.ndarray,
-    edge_features: jnp.ndarray,
-    senders: jnp.ndarray,
-    receivers: jnp.ndarray,
+    network_params: Params,
+    node_features: _NodeFeatures,
+    edge_features: _EdgeFeatures,
+    senders: _EdgeIndex,
+    receivers: _EdgeIndex,
     *,
     model_config: ModelConfig,
-) -> jnp.ndarray:
+) -> Frame:
     """The raw network on one graph.
 
     Args:
@@ -350,6 +363,6 @@ def apply_network(
     )
 
 
-def count_parameters(tree) -> int:
+def count_parameters(tree: _Tree) -> int:
     """Number of scalars in a pytree (e.g. ``params["network"]``)."""
     return int(sum(np.prod(np.shape(x)) for x in jax.tree_util.tree_leaves(tree)))
