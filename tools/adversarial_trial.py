@@ -500,6 +500,7 @@ def cli_cases(trial: Trial, work: Path) -> None:
     for name, argv, words in cases:
 
         def check(argv=argv, words=words):
+            shutil.rmtree(out, ignore_errors=True)
             proc = cli(argv)
             if not argv:  # help text and status 2
                 return proc.returncode == 2 and "Traceback" not in proc.stderr, f"exit {proc.returncode}"
@@ -589,11 +590,12 @@ def corrupt_cases(trial: Trial, work: Path) -> None:
         ("metadata.json dim = 7", metadata_edit(lambda v: v.update(dim=7)), ["metadata.json", "dim"]),
         ("metadata.json bounds a string", metadata_edit(lambda v: v.update(bounds="box")), ["metadata.json", "bounds"]),
         ("metadata.json dt negative", metadata_edit(lambda v: v.update(dt=-1.0)), ["metadata.json"]),
-        ("metadata.json without splits", metadata_edit(lambda v: v.pop("splits", None)), ["metadata.json"]),
+        ("metadata.json without dim", metadata_edit(lambda v: v.pop("dim", None)), ["metadata.json", "dim"]),
     ]
     for name, damage, words in damages:
 
         def check(name=name, damage=damage, words=words):
+            shutil.rmtree(out, ignore_errors=True)
             data = damaged(name.split()[0].replace(".", "_") + str(abs(hash(name)) % 1000), damage)
             proc = cli(["evaluate", "--data", data, "--splits", "test", "--out", out, "--no-progress", "--no-chaos"])
             passed, observed = clean_failure(proc, words=words, absent=[out])
@@ -615,6 +617,7 @@ def corrupt_cases(trial: Trial, work: Path) -> None:
     ):
 
         def check(name=name, damage=damage):
+            shutil.rmtree(out, ignore_errors=True)
             model = work / "corrupt-model" / str(abs(hash(name)) % 10000)
             shutil.copytree(pretrained_path(), model)
             damage(model)
