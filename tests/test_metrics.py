@@ -431,22 +431,26 @@ def test_radial_distribution_of_a_square_lattice_by_hand():
     np.testing.assert_allclose(g, expected, rtol=1e-5)
 
 
-def test_radial_distribution_matches_freud_overall_and_per_size_pair():
+@pytest.mark.parametrize("dim", [2, 3])
+def test_radial_distribution_matches_freud_overall_and_per_size_pair(dim):
+    # In 3-D the ideal-gas count uses the spherical shell 4/3 pi (r_hi^3 - r_lo^3) and the box volume.
     freud = pytest.importorskip("freud")
     rng = np.random.default_rng(7)
-    points = rng.uniform(-1, 1, (150, 2)).astype(np.float32)
-    large = rng.random(150) < 0.4
+    n = 150 if dim == 2 else 400
+    points = rng.uniform(-1, 1, (n, dim)).astype(np.float32)
+    large = rng.random(n) < 0.4
     side = 10.0  # a box with no periodic image within r_max: freud's g(r) of the open system
-    box = freud.box.Box.square(side)
-    flat = np.concatenate([points, np.zeros((150, 1), np.float32)], axis=1)
+    box = freud.box.Box.square(side) if dim == 2 else freud.box.Box.cube(side)
+    flat = np.concatenate([points, np.zeros((n, 1), np.float32)], axis=1) if dim == 2 else points
     for neighbours, queries in ((None, None), (large, ~large), (large, large)):
         rdf = freud.density.RDF(bins=20, r_max=0.4, normalization_mode="exact")
         system = flat if neighbours is None else flat[neighbours]
         # freud drops a particle's pair with itself only when the query points are the points themselves.
         same = queries is None or queries is neighbours
         rdf.compute(system=(box, system), query_points=None if same else flat[queries], reset=True)
-        r, g = M.radial_distribution(points, r_max=0.4, bins=20, volume=side**2, mask=neighbours, query_mask=queries)
+        r, g = M.radial_distribution(points, r_max=0.4, bins=20, volume=side**dim, mask=neighbours, query_mask=queries)
         np.testing.assert_allclose(r, rdf.bin_centers, rtol=1e-5)
+        assert np.count_nonzero(rdf.rdf) > 15  # shells with pairs in them: the comparison is not of zeros
         np.testing.assert_allclose(g, rdf.rdf, rtol=1e-4, atol=1e-4)
 
 

@@ -33,3 +33,26 @@ def test_sdist_manifest_carries_what_the_tests_read():
     for needed in ("tests", "notebooks", "tools", "CONTRIBUTING.md", "LICENSE", "CITATION.cff"):
         assert needed in manifest, needed
     assert (ROOT / "tests" / "conftest.py").is_file() and any((ROOT / "tests" / "data").glob("*.npz"))
+
+
+def test_every_shipped_model_is_package_data_and_all_fit_in_15_mb(tmp_path):
+    # setuptools expands package-data patterns with glob(recursive=True) under src/dispgns: every file
+    # of every shipped model directory (a second one, e.g. pretrained/sedimentation-3d, included)
+    # must match one. Checked with a wheel built from the tree on 2026-12-02: the second directory is in it.
+    import glob
+
+    from dispgns.pretrained import shipped_models
+
+    patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["dispgns"]
+    root = Path(dispgns.__file__).parent
+    fake = tmp_path / "pretrained" / "sedimentation-3d"
+    fake.mkdir(parents=True)
+    for name in ("params.msgpack", "model.json", "training_curve.png"):
+        (fake / name).write_bytes(b"x")
+    for base, names in ((root, shipped_models()), (tmp_path, ["sedimentation-3d"])):
+        covered = {Path(p) for pattern in patterns for p in glob.glob(str(base / pattern), recursive=True)}
+        for name in names:
+            files = [p for p in (base / "pretrained" / name).rglob("*") if p.is_file() and "__pycache__" not in p.parts]
+            assert files and all(p in covered for p in files), (name, files)
+    total = sum(p.stat().st_size for name in shipped_models() for p in (root / "pretrained" / name).rglob("*"))
+    assert 1e6 < total <= 15e6, f"the shipped models take {total / 1e6:.1f} MB"

@@ -4,6 +4,7 @@ The inputs are frames of the 3-D reference settling run (tests/data/sedimentatio
 spheres in the 0.1 m cube), divided by L so that the box is [-1, 1]^3.
 """
 
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -262,3 +263,115 @@ def test_batch_stream_turns_and_mirrors_examples_by_its_own_draws(frames):
     assert seen == {0, 1, 2, 3}
     with pytest.raises(ValueError, match="3-D"):
         BatchStream([Trajectory], quarter_turns=True, **{**common, "bounds": ((-1, 1), (-2, 2), (-1, 1))})
+
+
+def _relative_l2(a, b):
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
+
+
+def test_symmetrized_prediction_is_equivariant_under_the_floors_eight_symmetries(params, inputs):
+    # mean_g g^-1 net(g X) over the 8 symmetries of the square floor: any weights give an exactly
+    # equivariant prediction (to float rounding of the mean). The same untrained network without
+    # the average is far from equivariant: the test can tell the two apart.
+    from dispgns.simulator import floor_symmetries
+
+    x, a = inputs
+    symmetric = dataclasses.replace(TINY, symmetrize=True)
+    group = floor_symmetries(3)
+    assert len(group) == 8 and len(set(group)) == 8 and group[0] == ((0, 1, 2), (1.0, 1.0, 1.0))
+
+    def g(v, k):
+        perm, signs = group[k]
+        return np.asarray(v)[..., list(perm)] * np.asarray(signs, np.float32)
+
+    base_sym = _acc(params, x, a, config=symmetric)
+    base = _acc(params, x, a)
+    plain_errors = []
+    for k in range(1, 8):
+        moved = jnp.asarray(g(x, k))
+        assert _relative_l2(_acc(params, moved, a, config=symmetric), g(base_sym, k)) < 1e-5
+        plain_errors.append(_relative_l2(_acc(params, moved, a), g(base, k)))
+    assert min(plain_errors) > 1e-2, plain_errors
+    # The symmetric prediction is the mean of the network's predictions for g X, each mapped back by g^-1.
+    turned = [_acc(params, jnp.asarray(g(x, k)), a) for k in range(8)]
+    by_hand = np.mean(
+        [(np.asarray(turned[k]) * np.asarray(group[k][1]))[..., list(np.argsort(group[k][0]))] for k in range(8)],
+        axis=0,
+    )
+    np.testing.assert_allclose(np.asarray(base_sym), by_hand, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.slow  # two more programs to compile (~30 s of CPU)
+def test_symmetrized_rollout_batch_and_2d_mirror(params, inputs):
+    # The batched step (what rollout_batch and evaluate use) symmetrises too; in 2-D the group is
+    # the mirror image in x.
+    from dispgns.simulator import predict_step_batch
+
+    x, a = inputs
+    symmetric = dataclasses.replace(TINY, symmetrize=True)
+    batch = predict_step_batch(
+        params, jnp.stack([x, x]), jnp.stack([a, a]), model_config=symmetric, capacity=CAP
+    ).acceleration
+    np.testing.assert_allclose(np.asarray(batch[0]), np.asarray(_acc(params, x, a, config=symmetric)), atol=1e-7)
+    config2 = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, dim=2, symmetrize=True)
+    norm = {k: jnp.full((2,), v) for k, v in (("velocity_mean", 0.0), ("velocity_std", 0.05))}
+    norm |= {"acceleration_mean": jnp.full((2,), 1e-4), "acceleration_std": jnp.full((2,), 0.002)}
+    params2 = init_params(jax.random.key(5), config2, norm)
+    x2 = x[..., 1:]  # the y-z plane of the spheres: a 2-D input with the last axis vertical
+    full = G.full_capacity(N)  # all pairs: the projection packs the plane more densely than the cube
+    acc = _acc(params2, x2, a, config=config2, capacity=full)
+    mirrored = _acc(params2, x2 * jnp.asarray([-1.0, 1.0]), a, config=config2, capacity=full)
+    assert np.all(np.isfinite(acc))
+    assert _relative_l2(mirrored, np.asarray(acc) * [-1.0, 1.0]) < 1e-5
+    with pytest.raises(ValueError, match="square floor"):
+        ModelConfig(dim=3, symmetrize=True, bounds=((-1, 1), (-2, 2), (-1, 1)))
+    with pytest.raises(ValueError, match="square floor"):
+        ModelConfig(dim=2, symmetrize=True, bounds=((0, 2), (-1, 1)))
+
+
+# A trained model learns the floor's symmetries only approximately (from the augmentation): the
+# largest relative L2 difference ||acc(g X) - g acc(X)|| / ||acc(X)|| allowed over the 7 non-trivial
+# symmetries, on two windows of a fresh paper3d trajectory.
+TRAINED_EQUIVARIANCE_TOLERANCE = 0.1
+
+
+def floor_equivariance_errors(params, model_config, window, radius):
+    """``{(perm, signs): relative L2}`` of the one-step accelerations under each non-trivial floor symmetry."""
+    from dispgns.simulator import floor_symmetries, predict_acceleration
+
+    base = np.asarray(predict_acceleration(params, window, radius, model_config=model_config))
+    errors = {}
+    for perm, signs in floor_symmetries(3)[1:]:
+        moved = np.asarray(window)[..., list(perm)] * np.asarray(signs, np.float32)
+        acc = np.asarray(predict_acceleration(params, moved, radius, model_config=model_config))
+        errors[(perm, signs)] = _relative_l2(acc, base[..., list(perm)] * np.asarray(signs, np.float32))
+    return errors
+
+
+def paper3d_windows(seed=0, frames=40):
+    """Two input windows (frames 10-15 and 34-39) of a fresh trajectory in the paper3d cube, normalised."""
+    from dispgns.data.generate import PAPER3D_HALF_SIZE_M, PAPER_TRAIN_RADII_M
+    from dispgns.physics import sample_initial_state
+
+    config = PhysicsConfig(box_half_size=PAPER3D_HALF_SIZE_M)
+    state = sample_initial_state(jax.random.PRNGKey(seed), PAPER_TRAIN_RADII_M, config, dim=3)
+    truth = np.asarray(simulate(state.position, state.velocity, state.radius, config, n_frames=frames))
+    truth = (truth / PAPER3D_HALF_SIZE_M).astype(np.float32)
+    radius = (np.asarray(state.radius) / PAPER3D_HALF_SIZE_M).astype(np.float32)
+    return [truth[10:16], truth[frames - 6 :]], radius
+
+
+@pytest.mark.slow  # a fresh 3-D trajectory and 16 one-step predictions of the full-size model
+def test_shipped_3d_model_maps_turned_and_mirrored_inputs_onto_turned_and_mirrored_predictions():
+    from dispgns.pretrained import MODEL_3D, load_pretrained, shipped_models
+
+    if MODEL_3D not in shipped_models():
+        pytest.skip(f"no 3-D model ships yet (dispgns.pretrained has {shipped_models()}, not {MODEL_3D!r})")
+    params, config, _ = load_pretrained(MODEL_3D)
+    windows, radius = paper3d_windows()
+    for window in windows:
+        errors = floor_equivariance_errors(params, config, window, radius)
+        assert max(errors.values()) <= TRAINED_EQUIVARIANCE_TOLERANCE, errors
+        # Averaged over the eight symmetries the same weights are equivariant to float rounding.
+        symmetric = floor_equivariance_errors(params, dataclasses.replace(config, symmetrize=True), window, radius)
+        assert max(symmetric.values()) < 1e-5, symmetric

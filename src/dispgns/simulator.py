@@ -81,6 +81,7 @@ __all__ = [
     "acceleration_from_output",
     "build_graph",
     "fit_capacity",
+    "floor_symmetries",
     "network_output",
     "network_output_batch",
     "predict_acceleration",
@@ -218,6 +219,46 @@ def acceleration_from_output(params: Params, output: Frame, radius: Radii) -> Fr
     return (output * norm["acceleration_std"] + norm["acceleration_mean"]) * radius[:, None]
 
 
+@functools.cache
+def floor_symmetries(dim: int) -> tuple[tuple[tuple[int, ...], tuple[float, ...]], ...]:
+    """The symmetries of a square box floor: signed permutations of the horizontal axes, the vertical kept.
+
+    Element ``(perm, signs)`` maps a vector ``v`` ``(..., D)`` to ``g(v)[..., d] = signs[d] *
+    v[..., perm[d]]``: exact in floating point (swaps and sign changes only). The identity comes
+    first. ``D = 3``: the 8 symmetries of the square (4 quarter turns about the vertical, each
+    with or without a mirror image); ``D = 2``: the identity and the mirror image in ``x``.
+    """
+    import itertools
+
+    if dim < 2:
+        raise ValueError(f"floor_symmetries needs dim >= 2 (the last axis is vertical), got {dim}")
+    out = []
+    for perm in itertools.permutations(range(dim - 1)):
+        for signs in itertools.product((1.0, -1.0), repeat=dim - 1):
+            out.append((tuple(perm) + (dim - 1,), tuple(signs) + (1.0,)))
+    return tuple(out)
+
+
+def _transform(v, perm, signs):
+    return v[..., list(perm)] * jnp.asarray(signs, v.dtype)
+
+
+def _untransform(w, perm, signs):
+    """The inverse of :func:`_transform`: ``_untransform(_transform(v, g), g) == v``."""
+    return (w * jnp.asarray(signs, w.dtype))[..., list(np.argsort(perm))]
+
+
+def _symmetrized(predict, x, model_config: ModelConfig):
+    """``mean_g g^-1 predict(g x)`` over :func:`floor_symmetries` (``x`` ``(..., D)`` positions, any leading axes).
+
+    The graph is not rebuilt: the symmetries keep every distance, so ``x``'s graph is every
+    ``g x``'s graph. The ``G`` network evaluations are one vmapped program.
+    """
+    group = floor_symmetries(model_config.dim)
+    outputs = jax.vmap(predict)(jnp.stack([_transform(x, p, s) for p, s in group]))
+    return sum(_untransform(outputs[k], p, s) for k, (p, s) in enumerate(group)) / len(group)
+
+
 def _constrain(position, radius, model_config: ModelConfig):
     """``position`` ``(..., N, D)`` moved onto the wall contact positions where beyond them (if asked)."""
     if not model_config.keep_inside_box:
@@ -272,7 +313,11 @@ def predict_step(
     position_seq, radius, mask = _inputs(position_seq, radius, mask)
     x, a = sanitize(position_seq, radius, mask, model_config)
     graph = build_graph(x[-1], mask, capacity, model_config)
-    acc = acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
+
+    def predict(x):
+        return acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
+
+    acc = _symmetrized(predict, x, model_config) if model_config.symmetrize else predict(x)
     acc = jnp.where(mask[:, None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[-1]
     velocity = last - position_seq[-2] + acc
@@ -305,8 +350,12 @@ def predict_step_batch(
     position_seq, radius, mask = _inputs(position_seq, radius, mask)
     x, a = jax.vmap(lambda p, r, m: sanitize(p, r, m, model_config))(position_seq, radius, mask)
     graphs = jax.vmap(lambda p, m: build_graph(p, m, capacity, model_config))(x[:, -1], mask)
-    output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
-    acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
+
+    def predict(x):
+        output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
+        return jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
+
+    acc = _symmetrized(predict, x, model_config) if model_config.symmetrize else predict(x)
     acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[:, -1]
     moved = _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config)

@@ -189,29 +189,47 @@ def add_model_argument(parser) -> None:
         default=None,
         help="project predicted centres that cross a wall back onto it (default: as the model's config says)",
     )
+    parser.add_argument(
+        "--symmetrize",
+        action="store_true",
+        help="average every prediction over the symmetries of the box floor (8 in 3-D, the mirror image in 2-D): "
+        "exactly equivariant whatever the weights, the network's cost 8x (2x in 2-D)",
+    )
 
 
-def load_model_argument(args):
+def load_model_argument(args, dim: int = 2):
     """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: shipped model).
 
-    The config is the one to compute with (:func:`compute_config`).
+    Without ``--model`` it is the shipped model for ``dim``-D data (``paper`` in 2-D,
+    ``sedimentation-3d`` in 3-D). The config is the one to compute with (:func:`compute_config`).
     """
-    params, model_config, info = _load(args)
+    params, model_config, info = _load(args, dim)
     if getattr(args, "keep_inside_box", None) is not None:
         model_config = dataclasses.replace(model_config, keep_inside_box=args.keep_inside_box == "on")
+    if getattr(args, "symmetrize", False):
+        try:
+            model_config = dataclasses.replace(model_config, symmetrize=True)
+        except ValueError as error:
+            raise CLIError(f"--symmetrize: {error}") from None
     return params, compute_config(args, model_config), info
 
 
-def _load(args):
+def _load(args, dim: int = 2):
     from dispgns.training.checkpoint import CheckpointError, load_params
 
     if args.model is None:
         if args.best:
             raise CLIError("--best needs --model RUN (a training run directory)")
-        from dispgns.pretrained import load_pretrained
+        from dispgns.pretrained import default_model_name, load_pretrained, shipped_models
 
+        name = default_model_name(dim)
+        if name not in shipped_models():
+            raise CLIError(
+                f"no {dim}-D model ships with this installation of dispgns (dispgns.pretrained has "
+                f"{shipped_models()}, not {name!r}); pass --model PATH to a {dim}-D training run or exported model"
+            )
         try:
-            return load_pretrained()
+            return load_pretrained(name)
         except (FileNotFoundError, CheckpointError) as error:
             raise CLIError(f"the shipped model cannot be loaded: {error}; pass --model PATH") from None
     try:

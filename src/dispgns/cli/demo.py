@@ -52,7 +52,7 @@ def register(subparsers) -> None:
         choices=(2, 3),
         default=2,
         help="2: disks in the paper's 0.2 m square (default); 3: spheres in the 8 cm cube of "
-        "'dispgns generate --preset paper3d' (needs a 3-D model: --model PATH)",
+        "'dispgns generate --preset paper3d' with the shipped 3-D model (sedimentation-3d) or --model PATH",
     )
     parser.add_argument(
         "--preset",
@@ -112,10 +112,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     # Refused before minutes of computing: an existing output needs --overwrite.
     check_output(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="demo")
-    params, model_config, info = load_model_argument(args)
+    params, model_config, info = load_model_argument(args, dim=args.dim)
     if model_config.dim != args.dim:
-        hint = " (no 3-D model ships yet: pass --model PATH to a 3-D run or model)" if args.dim == 3 else ""
-        raise CLIError(f"--dim {args.dim}: the model is {model_config.dim}-D{hint}")
+        raise CLIError(f"--dim {args.dim}: the model is {model_config.dim}-D ({info.get('source')})")
     if args.frames is None:
         args.frames = DEFAULT_FRAMES[args.preset] if args.dim == 2 else 200
     c = model_config.input_sequence_length

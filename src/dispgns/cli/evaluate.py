@@ -77,11 +77,11 @@ def run(args: argparse.Namespace) -> int:
     from dispgns.data import DatasetError, load_dataset
     from dispgns.files import staged_directory
 
-    params, model_config, info = load_model_argument(args)
     try:
         metadata, splits = load_dataset(args.data, args.splits)
     except DatasetError as error:
         raise CLIError(str(error)) from None
+    params, model_config, info = load_model_argument(args, dim=metadata.dim)
     if metadata.dim != model_config.dim:
         raise CLIError(
             f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim {model_config.dim}"
@@ -89,7 +89,10 @@ def run(args: argparse.Namespace) -> int:
     if tuple(map(tuple, metadata.bounds)) != model_config.bounds:
         # The network is local (wall distances are clipped): the same parameters roll out in
         # any box; the box is the dataset's, so that the wall features see its walls.
-        model_config = dataclasses.replace(model_config, bounds=tuple(map(tuple, metadata.bounds)))
+        try:
+            model_config = dataclasses.replace(model_config, bounds=tuple(map(tuple, metadata.bounds)))
+        except ValueError as error:  # --symmetrize in a box without the floor's symmetries
+            raise CLIError(f"{Path(args.data) / 'metadata.json'}: the box {metadata.bounds}: {error}") from None
     c = model_config.input_sequence_length
     if args.frames is not None and not c < args.frames <= metadata.sequence_length:
         raise CLIError(f"--frames {args.frames}: expected C = {c} < T <= {metadata.sequence_length}")

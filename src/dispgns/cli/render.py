@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
                 f"from the same frame 0{_split_note(predicted[args.index], args.split)}"
             )
     else:
-        params, model_config, _ = load_model_argument(args)
+        params, model_config, _ = load_model_argument(args, dim=metadata.dim)
         if metadata.dim != model_config.dim:
             raise CLIError(
                 f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim {model_config.dim}"

@@ -1,8 +1,11 @@
-"""The trained model that ships with dispgns (weights, configs and training record).
+"""The trained models that ship with dispgns (weights, configs and training record).
 
-``load_pretrained()`` returns ``(params, model_config, info)`` like
+``load_pretrained(name)`` returns ``(params, model_config, info)`` like
 :func:`dispgns.training.checkpoint.load_model`; ``info["record"]`` holds how
-it was trained and what it scored (see ``experiments/paper/README.md``).
+it was trained and what it scored. Each model is a directory of this package
+(``params.msgpack`` + ``model.json``): ``paper`` (2-D disks, the default; see
+``experiments/paper/README.md``) and, once shipped, ``sedimentation-3d``
+(spheres in the ``paper3d`` cube; ``experiments/three_d/``).
 """
 
 from __future__ import annotations
@@ -19,13 +22,17 @@ __all__ = [
     "CONFIG_NAMES",
     "DEFAULT_CONFIG",
     "DEFAULT_MODEL",
+    "MODEL_3D",
     "NamedConfig",
+    "default_model_name",
     "load_pretrained",
     "named_config",
     "pretrained_path",
+    "shipped_models",
 ]
 
 DEFAULT_MODEL = "paper"
+MODEL_3D = "sedimentation-3d"
 DEFAULT_CONFIG = "cpu"
 
 
@@ -76,22 +83,47 @@ def named_config(name: str) -> NamedConfig:
     return NamedConfig(name, path, {k: dict(values.get(k) or {}) for k in ("model", "train")}, summary, seconds)
 
 
+def shipped_models() -> list[str]:
+    """Names of the models this installation ships (directories with a ``model.json``), sorted."""
+    root = Path(str(resources.files(__name__)))
+    return sorted(p.name for p in root.iterdir() if (p / "model.json").is_file())
+
+
+def default_model_name(dim: int = 2) -> str:
+    """The shipped model for ``dim``-D data: :data:`DEFAULT_MODEL` in 2-D, :data:`MODEL_3D` in 3-D."""
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+    return DEFAULT_MODEL if dim == 2 else MODEL_3D
+
+
 def pretrained_path(name: str = DEFAULT_MODEL) -> Path:
-    """Directory of the shipped model ``name`` (``params.msgpack`` + ``model.json``)."""
-    path = Path(str(resources.files(__name__))) / name
+    """Directory of the shipped model ``name`` (``params.msgpack`` + ``model.json``).
+
+    Raises:
+      FileNotFoundError: no such model in this installation (the message lists the shipped ones).
+    """
+    root = Path(str(resources.files(__name__)))
+    # A plain name only: never a path that leads out of the package.
+    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
+        raise FileNotFoundError(f"no shipped model {name!r}; available: {shipped_models()}")
+    path = root / name
     if not (path / "model.json").is_file():
-        available = sorted(p.name for p in path.parent.iterdir() if (p / "model.json").is_file())
-        raise FileNotFoundError(f"no shipped model {name!r} in {path.parent}; available: {available}")
+        raise FileNotFoundError(f"no shipped model {name!r} in {root}; available: {shipped_models()}")
     return path
 
 
 def load_pretrained(
     name: str = DEFAULT_MODEL,
 ) -> tuple[dispgns.arrays.Params, dispgns.model.ModelConfig, dict[str, Any]]:
-    """The shipped model: ``(params, model_config, info)``.
+    """A shipped model: ``(params, model_config, info)``.
 
     Args:
-      name: which shipped model (``"paper"``: trained on the paper's protocol).
+      name: which shipped model: ``"paper"`` (the default: 2-D disks trained on the paper's
+        protocol) or ``"sedimentation-3d"`` (spheres in the ``paper3d`` cube, when shipped);
+        :func:`shipped_models` lists what this installation has.
+
+    Raises:
+      FileNotFoundError: ``name`` is not shipped (the message lists what is).
     """
     from dispgns.training.checkpoint import load_model
 
