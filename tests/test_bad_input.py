@@ -559,3 +559,136 @@ def test_malformed_bounds_in_metadata_name_the_field(bounds, tiny_dataset, tmp_p
     (data / "metadata.json").write_text(json.dumps(values))
     with pytest.raises(DatasetError, match=r"metadata.json: 'bounds' is .* pair of numbers per axis"):
         read_metadata(data)
+
+
+# ----------------------------------------------------------------------------- several signals, unwritable checkpoints
+
+
+def _train_argv(data, run, steps, *extra):
+    return [sys.executable, "-m", "dispgns", "train", "--data", str(data), "--out", str(run), *TINY_TRAIN,
+            "--steps", str(steps), *extra]  # fmt: skip
+
+
+def _wait_for(proc, condition, timeout=900):
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not condition() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return condition()
+
+
+def _same_parameters(run_a, run_b):
+    from dispgns.training.checkpoint import load_model
+
+    a = jax.tree_util.tree_leaves(load_model(run_a / "model")[0])
+    b = jax.tree_util.tree_leaves(load_model(run_b / "model")[0])
+    for x, y in zip(a, b):  # the tolerance of test_training_loop's in-process resume test
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(tiny_dataset, tmp_path_factory):
+    """A 60-step run of the tiny network, never interrupted: what every interrupted run must end equal to."""
+    run = tmp_path_factory.mktemp("uninterrupted") / "run"
+    done = subprocess.run(_train_argv(tiny_dataset, run, 60), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return run
+
+
+@pytest.mark.slow
+def test_sigterm_again_and_again_exits_143_every_time_and_the_run_ends_exact(tiny_dataset, uninterrupted_run, tmp_path):
+    """SIGTERM at start-up of a resume, mid-training and just after a checkpoint, then a resume to the end."""
+    run = tmp_path / "run"
+    moments = [
+        lambda: (run / "checkpoints" / "20").is_dir(),  # training, after the first checkpoint
+        lambda: (run / "checkpoints" / "40").is_dir(),  # right after the next one
+        lambda: True,  # start-up of a resumed run (before or while it compiles)
+    ]
+    for number, moment in enumerate(moments):
+        proc = subprocess.Popen(
+            _train_argv(tiny_dataset, run, 60, *(["--resume"] if number else [])), stderr=subprocess.PIPE, text=True
+        )
+        assert _wait_for(proc, moment), proc.communicate()[1]
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=600)
+        # 143 from our handler, or -15 when the signal came before the handler was installed (start-up):
+        # both are the shell's status 143, and neither is a crash at exit.
+        assert proc.returncode in (143, -signal.SIGTERM), (number, proc.returncode, err)
+        for crash in ("Traceback", "terminate called", "pure virtual", "Segmentation", "Event loop is closed"):
+            assert crash not in err, err
+    done = subprocess.run(_train_argv(tiny_dataset, run, 60, "--resume"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    _same_parameters(run, uninterrupted_run)
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    steps = [(r["kind"], r["step"]) for r in log]
+    assert len(steps) == len(set(steps))
+
+
+def _mount_tmpfs(path):
+    import os
+    import shutil
+
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a file system needs root")
+    path.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=32m", "tmpfs", str(path)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["read-only file system", "checkpoints folder replaced by a file"])
+def test_checkpoints_unwritable_mid_training_one_line_and_the_earlier_checkpoint_resumes(
+    how, tiny_dataset, uninterrupted_run, tmp_path
+):
+    """The place of the checkpoints stops taking writes after step 20 (root is not stopped by chmod: the file
+    system is remounted read-only, or a file takes the checkpoints folder's place)."""
+    mount = tmp_path / "mnt"
+    if how == "read-only file system":
+        _mount_tmpfs(mount)
+    else:
+        mount.mkdir()
+    run = mount / "run"
+    try:
+        proc = subprocess.Popen(_train_argv(tiny_dataset, run, 60), stderr=subprocess.PIPE, text=True)
+        assert _wait_for(proc, lambda: (run / "checkpoints" / "20").is_dir()), proc.communicate()[1]
+        if how == "read-only file system":
+            subprocess.run(["mount", "-o", "remount,ro", str(mount)], check=True)
+        else:
+            (run / "checkpoints").rename(run / "aside")
+            (run / "checkpoints").write_text("a file where the checkpoints folder was\n")
+        _, err = proc.communicate(timeout=900)
+        assert proc.returncode == 2, err
+        errors = [line for line in err.splitlines() if "error:" in line]
+        assert len(errors) == 1 and "Traceback" not in err and "Event loop" not in err, err
+        assert f"cannot write to {run}" in errors[0] and "training stopped" in errors[0], errors[0]
+        assert f"{run / 'checkpoints' / '20'} (step 20), is intact" in errors[0], errors[0]
+        if how == "read-only file system":
+            assert "Read-only file system" in errors[0]
+            subprocess.run(["mount", "-o", "remount,rw", str(mount)], check=True)
+        else:
+            (run / "checkpoints").unlink()
+            (run / "aside").rename(run / "checkpoints")
+        done = subprocess.run(_train_argv(tiny_dataset, run, 60, "--resume"), capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        _same_parameters(run, uninterrupted_run)
+    finally:
+        if how == "read-only file system":
+            subprocess.run(["umount", str(mount)])
+
+
+@pytest.mark.parametrize("command", ["generate", "evaluate", "export"])
+def test_an_output_below_a_file_is_one_line_naming_the_output_before_any_work(command, tiny_dataset, tmp_path, capsys):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file where a directory would go\n")
+    out = blocker / "out"
+    argv = {
+        "generate": ["generate", "--preset", "tiny", "--out", str(out)],
+        "evaluate": ["evaluate", "--data", str(tiny_dataset), "--splits", "test", "--out", str(out)],
+        "export": ["export", "extxyz", str(tiny_dataset), "--split", "test", "--out", str(out)],
+    }[command]
+    code, _, err = _cli(argv, capsys)
+    assert code == 2, err
+    (line,) = [line for line in err.splitlines() if "error:" in line]
+    assert f"cannot write to {out}" in line and ".tmp" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker"]

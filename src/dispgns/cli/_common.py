@@ -66,7 +66,16 @@ def file_error(error: OSError, out) -> CLIError:
             text += " (--overwrite)"
         return CLIError(text)
     where = error.filename or out
+    if Path(str(where)).name.startswith(".") and ".tmp" in Path(str(where)).name:
+        where = out  # a staging name of dispgns.files says nothing to the user: the output it was for does
     return CLIError(f"cannot write to {where}: {error.strerror or error}")
+
+
+def check_writable_place(out) -> None:
+    """Refuse ``--out`` up front when its nearest existing ancestor is not a writable directory."""
+    parent = next((p for p in Path(out).absolute().parents if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise CLIError(f"cannot write to {out}: {parent} is not a writable directory")
 
 
 def check_output(out, *, overwrite: bool, marker: str, kind: str) -> None:
@@ -80,9 +89,7 @@ def check_output(out, *, overwrite: bool, marker: str, kind: str) -> None:
         check_output_directory(out, overwrite, marker, kind)
     except OSError as error:
         raise file_error(error, out) from None
-    parent = next((p for p in out.absolute().parents if p.exists()), None)
-    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK):
-        raise CLIError(f"cannot write to {out}: {parent} is not a writable directory")
+    check_writable_place(out)
 
 
 @contextlib.contextmanager

@@ -11,6 +11,7 @@ from dispgns.cli import CLIError
 from dispgns.cli._common import (
     add_distributed_arguments,
     add_model_argument,
+    check_output,
     clean_leftovers,
     file_error,
     fmt,
@@ -103,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory() as scratch:
             _evaluate(args, params, model_config, info, metadata, splits, Path(scratch))
         return 0
+    check_output(out, overwrite=args.overwrite, marker=METRICS_FILE, kind="evaluation")
     clean_leftovers(out)
     # Everything is written into a staging directory renamed to --out at the
     # end: an interrupted or failed evaluation leaves nothing half-written.

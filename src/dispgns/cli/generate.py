@@ -7,7 +7,13 @@ import contextlib
 import time
 
 from dispgns.cli import CLIError
-from dispgns.cli._common import clean_leftovers, file_error, physics_options, sigterm_as_interrupt
+from dispgns.cli._common import (
+    check_writable_place,
+    clean_leftovers,
+    file_error,
+    physics_options,
+    sigterm_as_interrupt,
+)
 
 _COUNT_OPTIONS = (("train", "train"), ("valid", "valid"), ("test", "test"), ("unseen", "test_unseen"))
 
@@ -157,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     # float64 must be on before the first array of the run is made; the
     # context keeps it local to this command (main() may be called in-process).
     precision = jax.enable_x64(True) if args.x64 else contextlib.nullcontext()
+    check_writable_place(args.out)  # before minutes of simulation
     clean_leftovers(args.out)
     try:
         with precision, sigterm_as_interrupt():

@@ -534,12 +534,15 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         # A checkpoint or the log cannot be written (read-only or full file system): stop with the place named
         # and what is still on disk; the checkpoints written before are untouched.
-        latest = _latest_checkpoint(run_dir)
-        kept = f"the newest checkpoint, step {latest}, is intact" if latest is not None else "no checkpoint was saved"
+        latest = checkpointer.last_saved
+        kept = (
+            f"the newest checkpoint, {run_dir / 'checkpoints' / str(latest)} (step {latest}), is intact"
+            if latest is not None
+            else "no checkpoint was saved"
+        )
         raise CLIError(
-            f"{file_error(error, run_dir)}; training stopped; {kept}; once {run_dir} can be written to again, continue "
-            f"with "
-            f"dispgns train --data {args.data} --out {args.out} --resume"
+            f"{file_error(error, run_dir)}; training stopped; {kept}; once {run_dir} can be written to again, "
+            f"continue with dispgns train --data {args.data} --out {args.out} --resume"
         ) from None
     finally:
         progress.close()
@@ -575,17 +578,6 @@ def run(args: argparse.Namespace) -> int:
         return interrupted_status()
     print(f"trained to step {int(state.step)}; model in {run_dir / MODEL_DIR}, log in {run_dir / LOG_FILE}")
     return 0
-
-
-def _latest_checkpoint(run_dir: Path) -> int | None:
-    """The newest finished checkpoint's step in ``RUN/checkpoints`` (orbax renames a finished save into place)."""
-    from dispgns.training.checkpoint import CHECKPOINT_DIR
-
-    try:
-        steps = [int(p.name) for p in (run_dir / CHECKPOINT_DIR).iterdir() if p.name.isdigit()]
-    except OSError:
-        return None
-    return max(steps, default=None)
 
 
 def _make_loggers(args, run_dir: Path, config):

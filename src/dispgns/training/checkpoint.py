@@ -322,6 +322,8 @@ class Checkpointer:
             self.run_dir.absolute() / BEST_DIR, options=ocp.CheckpointManagerOptions(max_to_keep=1, **options)
         )
         self.best_value = self._read_best_value()
+        # The newest checkpoint known complete (found at start or saved since): what a failed save leaves.
+        self.last_saved: int | None = self._last.latest_step()
 
     def _read_best_value(self) -> float:
         step = self._best.latest_step()
@@ -366,6 +368,7 @@ class Checkpointer:
         with _interrupts_held():
             if self._last.latest_step() != step:
                 self._save(self._last, step, args)
+                self.last_saved = step
             if validation_value is not None and np.isfinite(validation_value) and validation_value < self.best_value:
                 if self._best.latest_step() != step:
                     self._save(self._best, step, args)
