@@ -583,9 +583,11 @@ def radial_distribution(
     edges = jnp.linspace(0.0, r_max, bins + 1, dtype=frame.dtype)
     dist2 = sum((frame[:, d, None] - frame[None, :, d]) ** 2 for d in range(dim))
     pair = query[:, None] * weight[None, :] * (1.0 - jnp.eye(n, dtype=frame.dtype))
-    # Squared distances against squared edges: no sqrt, and [lo, hi) shells as freud.
-    index = jnp.sum(dist2[..., None] >= edges[1:] ** 2, axis=-1)
-    counts = jnp.sum(jax.nn.one_hot(index, bins + 1, dtype=frame.dtype) * pair[..., None], axis=(0, 1))[:bins]
+    # Squared distances against squared edges: no sqrt, and [lo, hi) shells as freud. The shell of
+    # each pair is searched and its weight added by bincount: a one-hot (N, N, bins) array took
+    # ~1 GB per call at N ~ 3,000 (and evaluate vmaps 16 calls), this needs (N, N) only.
+    index = jnp.searchsorted(edges[1:] ** 2, dist2, side="right")
+    counts = jnp.bincount(index.ravel(), weights=pair.ravel(), length=bins + 1)[:bins]
     shell = (math.pi if dim == 2 else 4.0 * math.pi / 3.0) * (edges[1:] ** dim - edges[:-1] ** dim)
     ideal = jnp.sum(query) * (jnp.sum(weight) / volume) * shell
     return 0.5 * (edges[1:] + edges[:-1]), counts / ideal
@@ -833,7 +835,10 @@ def _distances(trajectory, truth, mask, frames, *, frame_dt, box_half_size, sett
     both = dict(mask_x=mask, mask_y=mask)
 
     def per_frame(fn, u, v, **kw):
-        return jax.vmap(lambda a, b: fn(a, b, **kw, **both))(u, v)
+        # One frame after the other (lax.map, not vmap): each frame's MMD kernels and Sinkhorn
+        # costs are (N, N), and the K frames side by side, for every trajectory compared, took
+        # over 14 GB at N ~ 3,000 (the wide16 container) where one frame at a time needs K x less.
+        return jax.lax.map(lambda ab: fn(ab[0], ab[1], **kw, **both), (u, v))
 
     out = {
         "mmd_position": per_frame(maximum_mean_discrepancy, x, y, bandwidths=s["mmd_bandwidths_position"]),
@@ -850,8 +855,9 @@ def _statistics_arrays(
 ):
     """Statistics of every trajectory of ``(M, T, N, D)`` (the truth first) and the distances of the others to it.
 
-    Vectorised over the trajectories (and over the frames inside :func:`_distances`) so that the Sinkhorn
-    solves are one loop in one program, not one copy per frame and trajectory. Only the rows
+    Vectorised over the trajectories (the frames inside :func:`_distances` go one after the other, to bound
+    the memory of their (N, N) matrices) so that the Sinkhorn solves of a frame are one loop in one program,
+    not one copy per trajectory. Only the rows
     ``sinkhorn_rows`` of ``trajectories[1:]`` get Sinkhorn divergences: a vectorised solve runs until its
     slowest member converges, and the constant-velocity cloud, metres outside the box, takes the 2000
     iterations ott allows at this epsilon (10x the model's).
