@@ -205,3 +205,28 @@ def test_ship_tool_exports_a_run_with_its_record_and_results(dataset3d, tmp_path
     assert "| chaos floor MSE (physics re-run, 1e-6 L perturbation) |" in text and "NOT met" in text
     assert json.loads(results.with_suffix(".json").read_text())["steps"] == 20
     assert (tmp_path / "results" / "statistics_test_unseen.png").is_file()
+
+
+def test_without_model_the_commands_load_the_shipped_model_of_the_datas_dimension(model3d, monkeypatch):
+    # What evaluate, render and demo --dim 3 do once sedimentation-3d ships (shipped here: the tiny model).
+    import argparse
+
+    import dispgns.pretrained as pretrained
+    from dispgns.cli._common import load_model_argument
+    from dispgns.training.checkpoint import load_model
+
+    loaded = []
+
+    def fake_load(name=pretrained.DEFAULT_MODEL):
+        loaded.append(name)
+        params, config, info = load_model(model3d)
+        return params, config, {**info, "source": f"dispgns.pretrained:{name}"}
+
+    monkeypatch.setattr(pretrained, "shipped_models", lambda: ["paper", MODEL_3D])
+    monkeypatch.setattr(pretrained, "load_pretrained", fake_load)
+    args = argparse.Namespace(model=None, best=False, keep_inside_box=None, symmetrize=True, no_tuning=True)
+    _, config, info = load_model_argument(args, dim=3)
+    assert loaded == [MODEL_3D] and config.dim == 3 and config.symmetrize
+    assert info["source"] == f"dispgns.pretrained:{MODEL_3D}"
+    load_model_argument(argparse.Namespace(model=None, best=False, keep_inside_box=None, no_tuning=True), dim=2)
+    assert loaded == [MODEL_3D, "paper"]
