@@ -177,7 +177,8 @@ def test_ship_tool_exports_a_run_with_its_record_and_results(dataset3d, tmp_path
     from dispgns.training.checkpoint import load_model
 
     run = tmp_path / "run"
-    tiny = ["--set", "model.latent_size=16", "--set", "model.hidden_size=16", "--set", "model.message_passing_steps=2"]
+    tiny = ["--set", "model.dim=3", "--set", "model.latent_size=16", "--set", "model.hidden_size=16"]
+    tiny += ["--set", "model.message_passing_steps=2"]
     every = ["--set", "train.log_every=5", "--set", "train.checkpoint_every=10", "--set", "train.validate_every=10"]
     argv = ["train", "--data", str(dataset3d), "--out", str(run), *tiny, *every, "--steps", "20", "--no-progress"]
     assert main([*argv, "--set", "train.validation_rollout_frames=8"]) == 0

@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         "--symmetrize",
         action="store_true",
         help="ship (and evaluate) the model with ModelConfig.symmetrize: predictions averaged over the floor's 8 "
-        "symmetries, exactly equivariant, the network's cost 8x",
+        "symmetries, exactly equivariant, 8 network evaluations per step",
     )
     parser.add_argument("--frames", type=int, help="evaluate the first T frames only (default all)")
     parser.add_argument("--max-trajectories", type=int, help="only the first K trajectories per split")

@@ -107,8 +107,8 @@ class ModelConfig:
         image in 2-D): ``acc(X) = mean_g g^-1 net(g X)``, so the prediction is
         equivariant under them whatever the weights (to float rounding of the mean).
         Prediction only (``predict_step`` and everything built on it); training
-        targets the network itself. Costs the network 8x (3-D) or 2x (2-D); needs
-        a box centred on the vertical axis with a square floor.
+        targets the network itself. 8 network evaluations per step in 3-D (2 in 2-D,
+        as one merged graph); needs a box centred on the vertical axis with a square floor.
     """
 
     latent_size: int = 128

@@ -248,15 +248,22 @@ def _untransform(w, perm, signs):
     return (w * jnp.asarray(signs, w.dtype))[..., list(np.argsort(perm))]
 
 
-def _symmetrized(predict, x, model_config: ModelConfig):
-    """``mean_g g^-1 predict(g x)`` over :func:`floor_symmetries` (``x`` ``(..., D)`` positions, any leading axes).
+def _symmetrized(params, x, a, graphs, model_config: ModelConfig, edge_budget: int | None = None):
+    """``mean_g g^-1 acc(g x)`` over :func:`floor_symmetries`, ``(B, N, D)``, for sanitised ``x`` ``(B, C, N, D)``.
 
-    The graph is not rebuilt: the symmetries keep every distance, so ``x``'s graph is every
-    ``g x``'s graph. The ``G`` network evaluations are one vmapped program.
+    The graph is not rebuilt: the symmetries keep every distance, so ``x``'s graph is every ``g x``'s
+    graph. The ``G B`` inputs are evaluated as one disjoint graph (:func:`network_output_batch`), as a
+    training batch is: cheaper on a CPU than vmapping the network over the ``G`` copies.
     """
     group = floor_symmetries(model_config.dim)
-    outputs = jax.vmap(predict)(jnp.stack([_transform(x, p, s) for p, s in group]))
-    return sum(_untransform(outputs[k], p, s) for k, (p, s) in enumerate(group)) / len(group)
+    g, b = len(group), x.shape[0]
+    moved = jnp.concatenate([_transform(x, p, s) for p, s in group])  # (G B, C, N, D), symmetry-major
+    radius = jnp.tile(a, (g, 1))
+    copies = jax.tree_util.tree_map(lambda t: jnp.tile(t, (g,) + (1,) * (t.ndim - 1)), graphs)
+    budget = None if edge_budget is None else g * edge_budget
+    output = network_output_batch(params, moved, radius, copies, model_config=model_config, edge_budget=budget)
+    acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, radius).reshape((g, b) + x.shape[2:])
+    return sum(_untransform(acc[k], p, s) for k, (p, s) in enumerate(group)) / g
 
 
 def _constrain(position, radius, model_config: ModelConfig):
@@ -313,11 +320,11 @@ def predict_step(
     position_seq, radius, mask = _inputs(position_seq, radius, mask)
     x, a = sanitize(position_seq, radius, mask, model_config)
     graph = build_graph(x[-1], mask, capacity, model_config)
-
-    def predict(x):
-        return acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
-
-    acc = _symmetrized(predict, x, model_config) if model_config.symmetrize else predict(x)
+    if model_config.symmetrize:
+        one = jax.tree_util.tree_map(lambda t: t[None], graph)
+        acc = _symmetrized(params, x[None], a[None], one, model_config)[0]
+    else:
+        acc = acceleration_from_output(params, network_output(params, x, a, graph, model_config=model_config), a)
     acc = jnp.where(mask[:, None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[-1]
     velocity = last - position_seq[-2] + acc
@@ -350,12 +357,11 @@ def predict_step_batch(
     position_seq, radius, mask = _inputs(position_seq, radius, mask)
     x, a = jax.vmap(lambda p, r, m: sanitize(p, r, m, model_config))(position_seq, radius, mask)
     graphs = jax.vmap(lambda p, m: build_graph(p, m, capacity, model_config))(x[:, -1], mask)
-
-    def predict(x):
+    if model_config.symmetrize:
+        acc = _symmetrized(params, x, a, graphs, model_config, edge_budget)
+    else:
         output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
-        return jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
-
-    acc = _symmetrized(predict, x, model_config) if model_config.symmetrize else predict(x)
+        acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
     acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
     last = position_seq[:, -1]
     moved = _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config)

@@ -200,7 +200,7 @@ def add_model_argument(parser) -> None:
         "--symmetrize",
         action="store_true",
         help="average every prediction over the symmetries of the box floor (8 in 3-D, the mirror image in 2-D): "
-        "exactly equivariant whatever the weights, the network's cost 8x (2x in 2-D)",
+        "exactly equivariant whatever the weights, 8 network evaluations per step in 3-D (2 in 2-D)",
     )
 
 
