@@ -116,6 +116,20 @@ def test_loop_logs_validates_and_keeps_last_and_best(data, tiny_model_config, tm
     assert first == second and np.isfinite(first["valid_one_step_loss"]) and first["valid_rollout_frames"] == 10
 
 
+def test_best_is_kept_when_validations_fall_between_checkpoints(data, tiny_model_config, tmp_path):
+    import dataclasses
+
+    config = dataclasses.replace(LOOP, validate_every=5, checkpoint_every=4, keep_checkpoints=1)
+    state, stream, key = fresh(data, tiny_model_config, config)
+    checkpointer = Checkpointer(tmp_path / "run", keep=1)
+    values = iter([3.0, 1.0, 2.0])
+    train(state, stream, key, until_step=12, validator=lambda params: {"valid_rollout_mse": next(values)},
+          checkpointer=checkpointer)  # fmt: skip
+    checkpointer.close()
+    assert [p.name for p in (tmp_path / "run" / "best").iterdir() if p.name.isdigit()] == ["10"]
+    assert [p.name for p in (tmp_path / "run" / "checkpoints").iterdir() if p.name.isdigit()] == ["12"]
+
+
 def test_keyboard_interrupt_checkpoints_and_returns(data, tiny_model_config, tmp_path):
     state, stream, key = fresh(data, tiny_model_config)
     checkpointer = Checkpointer(tmp_path / "run", keep=2)

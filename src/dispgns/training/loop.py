@@ -201,7 +201,7 @@ def train(
     "steps_per_s", "elapsed_s", "cpu_s"}`` (wall and CPU seconds of this
     process since ``train`` was called: a resumed run starts again from 0,
     so accuracy per CPU-hour sums the segments); every ``validate_every`` steps (and at the
-    end) ``validator(params)`` runs and ``on_log`` gets ``{"kind":
+    end) ``validator(params)`` runs and the state is checkpointed and ``on_log`` gets ``{"kind":
     "validation", "step", ...metrics}``; every ``checkpoint_every`` steps, at
     the end and on ``KeyboardInterrupt`` the checkpointer saves (the best
     checkpoint is judged by ``valid_rollout_mse``, else the one-step loss).
@@ -318,9 +318,12 @@ def train(
                 )
                 losses, norms = [], []
                 window_start, window_step = now, step
-            if tc.validate_every and step % tc.validate_every == 0:
+            validating = bool(tc.validate_every) and step % tc.validate_every == 0
+            if validating:
                 validate()
-            if tc.checkpoint_every and step % tc.checkpoint_every == 0:
+            # Also after every validation, whatever checkpoint_every says: the best checkpoint is
+            # judged (and saved) only when a validation and a save fall on the same step.
+            if validating or (tc.checkpoint_every and step % tc.checkpoint_every == 0):
                 checkpoint()
         validate()
         checkpoint()
