@@ -444,12 +444,13 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint_and_says_which_was_da
     assert "checkpoints/20" in reason and "damaged" in reason and "strict" not in reason
 
 
-def test_evaluate_on_a_run_whose_checkpoints_are_of_another_model_speaks_cli(tmp_path, capsys):
+def test_evaluate_on_a_run_whose_checkpoints_are_of_another_model_speaks_cli(tmp_path, tiny_dataset, capsys):
     import dataclasses
 
     run = tmp_path / "run"
     _saved_run(run, TINY, steps=(10,), stored_model=dataclasses.replace(TINY, latent_size=16))
-    code, _, err = _cli(["evaluate", "--model", str(run), "--data", str(tmp_path)], capsys)
+    # A valid dataset: evaluate reads it before the model (its dimension picks the shipped model).
+    code, _, err = _cli(["evaluate", "--model", str(run), "--data", str(tiny_dataset)], capsys)
     assert code == 2, err
     assert "written for another configuration" in err and "latent_size" in err
     assert "strict" not in err and "Traceback" not in err and "ArrayRestoreArgs" not in err
