@@ -444,6 +444,34 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint_and_says_which_was_da
     assert "checkpoints/20" in reason and "damaged" in reason and "strict" not in reason
 
 
+def test_resume_accepts_a_checkpoint_written_before_a_model_field_existed(tmp_path):
+    """A checkpoint whose stored config lacks a later ModelConfig field (at its default) still resumes."""
+    from dispgns.training.checkpoint import Checkpointer
+
+    state, config = _saved_run(tmp_path, TINY, steps=(10,))
+    stored = tmp_path / "checkpoints" / "10" / "extra" / "metadata"
+    assert stored.exists()
+    older = json.loads(stored.read_text())
+    del older["config"]["model"]["symmetrize"]  # as written before `symmetrize` was added
+    stored.write_text(json.dumps(older))
+    checkpointer = Checkpointer(tmp_path, keep=5, config=config)
+    try:
+        restored, _, _ = checkpointer.restore(state, jax.random.key(1))
+    finally:
+        checkpointer.close()
+    assert int(restored.step) == 10
+
+    # Not at its default: a real disagreement, named.
+    older["config"]["model"]["latent_size"] = 99
+    stored.write_text(json.dumps(older))
+    checkpointer = Checkpointer(tmp_path, keep=5, config=config)
+    try:
+        with pytest.raises(Exception, match="latent_size: checkpoint 99"):
+            checkpointer.restore(state, jax.random.key(1))
+    finally:
+        checkpointer.close()
+
+
 def test_evaluate_on_a_run_whose_checkpoints_are_of_another_model_speaks_cli(tmp_path, tiny_dataset, capsys):
     import dataclasses
 

@@ -26,6 +26,7 @@ library modules that write files, and only at the paths they are given.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import json
 import logging
@@ -455,10 +456,17 @@ class Checkpointer:
         if not isinstance(theirs, Mapping):
             return ""
         ignored = {"kernels"}  # a speed setting, the same function
+        # A field missing on either side was added to ModelConfig after that side was written: it then had
+        # the field's default behaviour, so a checkpoint of an older version still resumes a run.
+        defaults = {field.name: field.default for field in dataclasses.fields(ModelConfig)}
+
+        def value(config, name):
+            return config.get(name, defaults.get(name))
+
         diff = [
-            f"{name}: checkpoint {theirs.get(name)!r}, config.json {mine.get(name)!r}"
+            f"{name}: checkpoint {value(theirs, name)!r}, config.json {value(mine, name)!r}"
             for name in sorted(set(mine) | set(theirs))
-            if name not in ignored and theirs.get(name) != mine.get(name)
+            if name not in ignored and value(theirs, name) != value(mine, name)
         ]
         return "; ".join(diff)
 
