@@ -30,10 +30,15 @@ The loop, written out for a chunked computation (what :func:`drive` does)::
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from typing import Any, NamedTuple
 
+from jaxtyping import ArrayLike, PyTree, Shaped
+
 __all__ = ["Attempt", "CapacityError", "coarse_ladder", "drive", "ladder"]
+
+# A caller's state or output: any pytree of arrays (positions and velocities, a rollout's frames, ...).
+_Tree = PyTree[Shaped[ArrayLike, "..."]]
 
 
 class CapacityError(RuntimeError):
@@ -76,21 +81,21 @@ class Attempt(NamedTuple):
       overflow: the capacity was too small for the next unit: grow and redo it.
     """
 
-    state: Any
-    output: Any
+    state: _Tree
+    output: _Tree | None
     done: int
     overflow: bool
 
 
 def drive(
     run: Callable[[Any, Any, int], Attempt],
-    state: Any,
-    capacity: Any,
+    state: _Tree,
+    capacity: Hashable,
     grow: Callable[[Any, Any], Any],
     *,
     total: int = 1,
     progress: Callable[[int], None] | None = None,
-) -> tuple[Any, list, Any]:
+) -> tuple[_Tree, list[_Tree], Hashable]:
     """Run ``run(state, capacity, remaining)`` until ``total`` units are done, growing on overflow.
 
     Args:

@@ -33,15 +33,27 @@ from __future__ import annotations
 
 import functools
 
+# Callable and DTypeLike name the field types of dispgns.model's Dense and MLP: the dataclass ``__init__`` flax
+# generates for the subclasses below resolves its annotations in this module's namespace.
+from collections.abc import Callable  # noqa: F401
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jax.typing import DTypeLike  # noqa: F401
+from jaxtyping import ArrayLike, Float
 
 from dispgns.model import MLP as PlainMLP
 from dispgns.model import Dense
 
 __all__ = ["LayerNorm", "Linear", "MLP"]
+
+# ``x (..., K) @ kernel (K, H)``; the hidden and output rows of an MLP.
+_Inputs = Float[ArrayLike, "*batch K"]
+_Kernel = Float[ArrayLike, "K H"]
+_Hidden = Float[ArrayLike, "*batch H"]
+_Outputs = Float[ArrayLike, "*batch O"]
 
 
 def _row_chunks(rows: int) -> int:
@@ -86,7 +98,7 @@ _matmul_bf16.defvjp(_matmul_bf16_fwd, _matmul_bf16_bwd)
 class Linear(Dense):
     """:class:`dispgns.model.Dense` with bfloat16 products of 2-D inputs through :func:`_matmul_bf16`."""
 
-    def dot(self, x, kernel):
+    def dot(self, x: _Inputs, kernel: _Kernel) -> _Outputs:
         if self.matmul_dtype is not None and x.ndim == 2:
             return _matmul_bf16(x, kernel).astype(x.dtype)
         return super().dot(x, kernel)
@@ -175,13 +187,13 @@ class LayerNorm(nn.Module):
 class MLP(PlainMLP):
     """:class:`dispgns.model.MLP` (same parameters, same function) with the fused LayerNorm and :class:`Linear`."""
 
-    def dense(self, index: int, fan_in: int, fan_out: int):
+    def dense(self, index: int, fan_in: int, fan_out: int) -> Linear:
         return Linear(fan_in, fan_out, self.matmul_dtype, name=f"Dense_{index}")
 
-    def layer_norm_module(self):
+    def layer_norm_module(self) -> LayerNorm:
         return LayerNorm(epsilon=self.epsilon, name="LayerNorm_0")
 
-    def after_first(self, h):
+    def after_first(self, h: _Hidden) -> _Outputs:
         """The MLP applied to the output ``h (..., H)`` of its first linear layer."""
         if not self.layer_norm or len(self.layers) == 1:
             return super().after_first(h)

@@ -48,6 +48,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from dispgns.arrays import Box, ParticleMask, Positions, Radii
 from dispgns.files import atomic_path
 
 __all__ = [
@@ -63,6 +64,9 @@ __all__ = [
     "save_figure",
     "save_rollout_animation",
 ]
+
+# A box as an array or as ``((lo, hi),) * D`` (what ``ModelConfig.bounds`` and dataset metadata hold).
+_BoxLike = Box | Sequence[Sequence[float]]
 
 _PAD = 0.04  # margin around the box, in box units
 
@@ -90,7 +94,7 @@ def _new_figure(figsize, dpi, layout=None) -> Figure:
     return fig
 
 
-def save_figure(fig: Figure, path, *, dpi: float | None = None) -> str:
+def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: float | None = None) -> str:
     """Write ``fig`` to ``path`` atomically (format from the extension).
 
     The image has exactly the figure's size (``figsize * dpi`` pixels; no
@@ -365,11 +369,11 @@ def _panels(truth, prediction, titles):
 
 
 def rollout_animation(
-    truth,
-    prediction=None,
-    radius=None,
+    truth: Positions,
+    prediction: Positions | None = None,
+    radius: Radii | None = None,
     *,
-    mask=None,
+    mask: ParticleMask | None = None,
     frame_dt: float | None = 1.5e-3,
     input_frames: int | None = 6,
     start: int = 0,
@@ -377,12 +381,12 @@ def rollout_animation(
     stride: int = 1,
     fps: float = 20.0,
     box_half_size: float | None = None,
-    bounds=None,
+    bounds: _BoxLike | None = None,
     titles: Sequence[str] = ("ground truth", "prediction"),
-    figsize=None,
+    figsize: tuple[float, float] | None = None,
     dpi: float = 80,
     cmap: str = "viridis",
-):
+) -> tuple[Figure, animation.FuncAnimation]:
     """Side-by-side animation (ground truth | prediction) for notebooks.
 
     Args:
@@ -458,13 +462,13 @@ def _write_mp4(scene: _Scene, frames: Sequence[int], path: str, fps: float, ffmp
 
 
 def save_rollout_animation(
-    path,
-    truth,
-    prediction=None,
-    radius=None,
+    path: str | os.PathLike,
+    truth: Positions,
+    prediction: Positions | None = None,
+    radius: Radii | None = None,
     *,
     mp4: bool = True,
-    mask=None,
+    mask: ParticleMask | None = None,
     frame_dt: float | None = 1.5e-3,
     input_frames: int | None = 6,
     start: int = 0,
@@ -472,9 +476,9 @@ def save_rollout_animation(
     stride: int = 1,
     fps: float = 20.0,
     box_half_size: float | None = None,
-    bounds=None,
+    bounds: _BoxLike | None = None,
     titles: Sequence[str] = ("ground truth", "prediction"),
-    figsize=None,
+    figsize: tuple[float, float] | None = None,
     dpi: float = 80,
     cmap: str = "viridis",
 ) -> dict[str, Any]:
@@ -525,20 +529,20 @@ def save_rollout_animation(
 
 
 def frame_grid(
-    truth,
-    prediction=None,
-    radius=None,
+    truth: Positions,
+    prediction: Positions | None = None,
+    radius: Radii | None = None,
     frames: Sequence[int] = (0, 100, 200, 300, 400),
     *,
-    mask=None,
+    mask: ParticleMask | None = None,
     frame_dt: float | None = 1.5e-3,
     box_half_size: float | None = None,
-    bounds=None,
+    bounds: _BoxLike | None = None,
     row_labels: Sequence[str] = ("ground truth", "prediction"),
     panel_size: float = 2.4,
     dpi: float = 100,
     cmap: str = "viridis",
-    path=None,
+    path: str | os.PathLike | None = None,
 ) -> Figure:
     """Still grid of snapshots like the paper's figures.
 
@@ -632,9 +636,9 @@ def plot_error_curves(
     frame_dt: float | None = None,
     ylabel: str = "MSE (normalised units$^2$)",
     title: str | None = None,
-    figsize=(6.0, 4.0),
+    figsize: tuple[float, float] = (6.0, 4.0),
     dpi: float = 100,
-    path=None,
+    path: str | os.PathLike | None = None,
 ) -> Figure:
     """Per-frame error curves on a log scale (model vs. baselines).
 
@@ -677,7 +681,12 @@ def plot_error_curves(
 
 
 def plot_rollout_errors(
-    metrics: Mapping[str, Any], *, frame_dt: float | None = None, title: str | None = None, path=None, **kwargs
+    metrics: Mapping[str, Any],
+    *,
+    frame_dt: float | None = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+    **kwargs,
 ) -> Figure:
     """Model vs. constant velocity vs. chaos floor from a metrics dict.
 
@@ -713,9 +722,9 @@ def plot_statistics(
     frame_dt: float | None = None,
     box_half_size: float | None = None,
     title: str | None = None,
-    figsize=(13.0, 4.0),
+    figsize: tuple[float, float] = (13.0, 4.0),
     dpi: float = 100,
-    path=None,
+    path: str | os.PathLike | None = None,
 ) -> Figure:
     """The suspension statistics of a rollout: truth, model, constant velocity and chaos floor overlaid.
 
@@ -810,9 +819,9 @@ def plot_training_curve(
     smooth: int = 0,
     logy: bool = True,
     title: str | None = None,
-    figsize=(6.0, 4.0),
+    figsize: tuple[float, float] = (6.0, 4.0),
     dpi: float = 100,
-    path=None,
+    path: str | os.PathLike | None = None,
 ) -> Figure:
     """Training loss (and validation metrics) against the training step.
 

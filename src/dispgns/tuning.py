@@ -34,8 +34,11 @@ import functools
 import os
 import sys
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
+
+# For annotations only (resolved lazily by ``typing.get_type_hints``): the model layer sits below this one.
+import dispgns
 
 __all__ = [
     "Thresholds",
@@ -149,7 +152,7 @@ def physics_compiler_options() -> dict[str, Any]:
     return supported_compiler_options({"xla_cpu_prefer_vector_width": 512})
 
 
-def network_compiler_options(model_config=None) -> dict[str, Any]:
+def network_compiler_options(model_config: dispgns.model.ModelConfig | None = None) -> dict[str, Any]:
     """XLA options for the learned simulator's network on the CPU (``{}`` on other backends).
 
     With float32 matmuls (``ModelConfig.matmul_dtype = "float32"``) the dots
@@ -196,7 +199,12 @@ def _supported(items: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...
     return tuple(kept)
 
 
-def jitted(fun, compiler_options: Mapping[str, Any] | None = None, *, static_argnames: tuple[str, ...] = ()):
+def jitted(
+    fun: Callable[..., Any],
+    compiler_options: Mapping[str, Any] | None = None,
+    *,
+    static_argnames: tuple[str, ...] = (),
+) -> Callable[..., Any]:
     """``jax.jit(fun, static_argnames=..., compiler_options=...)``, one jitted object per ``(fun, options)``.
 
     The host drivers compile their module-level functions through this, so
@@ -212,7 +220,7 @@ def _jitted(fun, options: tuple[tuple[str, Any], ...], static_argnames: tuple[st
     return jax.jit(fun, static_argnames=static_argnames, compiler_options=dict(options) or None)
 
 
-def tuned_model_config(model_config):
+def tuned_model_config(model_config: dispgns.model.ModelConfig) -> dispgns.model.ModelConfig:
     """``model_config`` computed with the CPU kernels of :mod:`dispgns.kernels` (same parameters, same function)."""
     return dataclasses.replace(model_config, kernels="fused")
 

@@ -46,6 +46,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
+
+from dispgns.arrays import Box, Frame, ParticleMask, Radii
 
 __all__ = [
     "OVERLAP_FRACTION",
@@ -65,6 +68,16 @@ OVERLAP_FRACTION = 0.5
 _METRE_RADIUS_DIVISOR = 16.0
 _METRE_EXTENT = 0.2
 
+# One state or a batch of them: positions ``(N, D)`` or ``(B, N, D)`` (a leading frame axis is allowed where a
+# docstring says so), radii and masks ``(N,)`` or ``(B, N)``; rows of any array with a particle axis.
+_States = Float[ArrayLike, "*batch N D"]
+_StateRadii = Float[ArrayLike, "*batch N"]
+_StateMask = Bool[ArrayLike, "*batch N"]
+_ParticleRows = Float[ArrayLike, "*batch N D"] | Float[ArrayLike, "*batch N"]
+_StateFrames = Float[ArrayLike, "*batch C N D"]
+# A box as an array or as ``((lo, hi),) * D``.
+_BoxLike = Box | Sequence[Sequence[float]]
+
 
 def _where(index: tuple[int, ...], particle_axes: int) -> str:
     """``particle 3`` or ``trajectory 1, particle 3`` (and ``frame 2, ...``) for an index into an array."""
@@ -77,7 +90,7 @@ def _real(mask, shape) -> np.ndarray:
     return np.ones(shape, bool) if mask is None else np.asarray(mask, bool)
 
 
-def check_finite(array, name: str, *, mask=None, particle_axis: int = -2) -> None:
+def check_finite(array: _ParticleRows, name: str, *, mask: _StateMask | None = None, particle_axis: int = -2) -> None:
     """Raise if a real particle's row of ``array`` holds NaN or inf.
 
     Args:
@@ -103,7 +116,14 @@ def check_finite(array, name: str, *, mask=None, particle_axis: int = -2) -> Non
         )
 
 
-def check_radii(radius, name: str = "radius", *, mask=None, below: float | None = None, box: str = "") -> None:
+def check_radii(
+    radius: _StateRadii,
+    name: str = "radius",
+    *,
+    mask: _StateMask | None = None,
+    below: float | None = None,
+    box: str = "",
+) -> None:
     """Raise if a real particle's radius is not finite and ``> 0`` (``radius``: ``(N,)`` or ``(B, N)``).
 
     ``below``: also refuse radii ``>= below`` (the box's smallest half-size
@@ -129,7 +149,9 @@ def check_radii(radius, name: str = "radius", *, mask=None, below: float | None 
             )
 
 
-def check_inside_box(position, radius, bounds: Sequence[Sequence[float]], name: str, *, mask=None, box: str) -> None:
+def check_inside_box(
+    position: _States, radius: _StateRadii, bounds: _BoxLike, name: str, *, mask: _StateMask | None = None, box: str
+) -> None:
     """Raise if a real particle's centre lies outside the box ``bounds`` on some axis.
 
     Args:
@@ -152,7 +174,14 @@ def check_inside_box(position, radius, bounds: Sequence[Sequence[float]], name: 
         )
 
 
-def check_overlaps(position, radius, name: str, *, mask=None, fraction: float = OVERLAP_FRACTION) -> None:
+def check_overlaps(
+    position: _States,
+    radius: _StateRadii,
+    name: str,
+    *,
+    mask: _StateMask | None = None,
+    fraction: float = OVERLAP_FRACTION,
+) -> None:
     """Raise if two real particles' centres are closer than ``fraction * (a_i + a_j)``.
 
     A k-d tree finds candidate pairs (``O(N log N)``), so this stays cheap for
@@ -189,7 +218,14 @@ def check_overlaps(position, radius, name: str, *, mask=None, fraction: float = 
             )
 
 
-def check_normalised_units(position, radius, *, bounds, connectivity_radius: float, mask=None) -> None:
+def check_normalised_units(
+    position: _States,
+    radius: _StateRadii,
+    *,
+    bounds: _BoxLike,
+    connectivity_radius: float,
+    mask: _StateMask | None = None,
+) -> None:
     """Raise if positions and radii look like metres rather than normalised units (see the module docstring)."""
     x = np.asarray(position)
     a = np.asarray(radius)
@@ -211,12 +247,12 @@ def check_normalised_units(position, radius, *, bounds, connectivity_radius: flo
 
 
 def check_particles(
-    position,
-    radius,
+    position: _States | _StateFrames,
+    radius: _StateRadii,
     *,
-    mask=None,
-    velocity=None,
-    bounds,
+    mask: _StateMask | None = None,
+    velocity: _States | None = None,
+    bounds: _BoxLike,
     box: str,
     position_name: str,
     velocity_name: str = "velocity",
@@ -254,7 +290,7 @@ def check_particles(
         check_overlaps(x, a, position_name, mask=m)
 
 
-def checkify_inputs(position, radius, *, bounds, mask=None) -> None:
+def checkify_inputs(position: Frame, radius: Radii, *, bounds: _BoxLike, mask: ParticleMask | None = None) -> None:
     """The finite, radius and inside-the-box checks as :func:`jax.experimental.checkify.check` calls.
 
     For use inside a function wrapped with ``checkify.checkify`` (works under

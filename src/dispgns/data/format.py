@@ -52,6 +52,7 @@ import json
 import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -859,7 +860,7 @@ def write_metadata(directory: str | os.PathLike, metadata: DatasetMetadata) -> P
     return write_atomic(path, json.dumps(metadata.to_dict(), indent=2) + "\n")
 
 
-def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False):
+def staged_directory(out_dir: str | os.PathLike, *, overwrite: bool = False) -> AbstractContextManager[Path]:
     """:func:`dispgns.files.staged_directory` for a dataset (``metadata.json`` marks one)."""
     return files.staged_directory(out_dir, overwrite=overwrite, marker=METADATA_FILE, kind="dataset")
 
@@ -1001,7 +1002,7 @@ def _drop_padding(fields: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-def motion_statistics(positions: Iterable[np.ndarray], dim: int | None = None) -> dict[str, list[float]]:
+def motion_statistics(positions: Iterable[Positions], dim: int | None = None) -> dict[str, list[float]]:
     """LagrangeBench's normalisation statistics of a set of trajectories.
 
     Args:

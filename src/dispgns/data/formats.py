@@ -33,7 +33,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
+from dispgns.arrays import PerFrame, Positions, Radii
 from dispgns.data.format import BOX_TOLERANCE, DatasetError, DatasetMetadata, Trajectory
 from dispgns.files import atomic_path, write_atomic
 
@@ -57,6 +59,10 @@ __all__ = [
 
 EXPORT_FORMATS = ("extxyz", "gsd", "vtu")
 IMPORT_FORMATS = ("extxyz", "gsd", "lammps-dump")
+# What a file holds, in its own length unit: centres with z (0 in 2-D) and a box per axis.
+_FilePositions = Float[ArrayLike, "T N 3"]
+_FileBox = Float[ArrayLike, "3 2"]
+
 _SUFFIX = {"extxyz": ".extxyz", "gsd": ".gsd", "vtu": ".vtu.series"}
 _LIBRARY = {"extxyz": "ase", "gsd": "gsd", "vtu": "meshio"}
 # GSD log entries dispgns writes (HOOMD files from elsewhere have none: their unit must be given).
@@ -113,8 +119,8 @@ def _scale_and_half_sizes(box_half_size, length_scale: float | None, dim: int) -
 
 def write_extxyz(
     path: str | os.PathLike,
-    position: np.ndarray,
-    radius: np.ndarray,
+    position: Positions,
+    radius: Radii,
     *,
     box_half_size: float | Sequence[float],
     frame_dt: float,
@@ -157,8 +163,8 @@ def write_extxyz(
 
 def write_gsd(
     path: str | os.PathLike,
-    position: np.ndarray,
-    radius: np.ndarray,
+    position: Positions,
+    radius: Radii,
     *,
     box_half_size: float | Sequence[float],
     frame_dt: float,
@@ -197,8 +203,8 @@ def write_gsd(
 
 def write_vtu_series(
     path: str | os.PathLike,
-    position: np.ndarray,
-    radius: np.ndarray,
+    position: Positions,
+    radius: Radii,
     *,
     box_half_size: float | Sequence[float],
     frame_dt: float,
@@ -269,7 +275,17 @@ class FileTrajectory:
       where: the file name, for messages.
     """
 
-    def __init__(self, position, radius, *, box=None, dim=None, length_unit=None, times=None, where=""):
+    def __init__(
+        self,
+        position: _FilePositions,
+        radius: Radii,
+        *,
+        box: _FileBox | None = None,
+        dim: int | None = None,
+        length_unit: float | None = None,
+        times: PerFrame | None = None,
+        where: str = "",
+    ):
         self.position, self.radius, self.box = position, radius, box
         self.dim, self.length_unit, self.times, self.where = dim, length_unit, times, where
 

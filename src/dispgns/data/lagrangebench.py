@@ -50,6 +50,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+from jaxtyping import Float, Int
 
 from dispgns.data.format import (
     FORMAT_VERSION,
@@ -74,9 +75,13 @@ UNSEEN_DIRECTORY = "test_unseen"
 OFFSET = 1.0
 
 
+# One array of a padded trajectory group (M = n_max particles): position, or particle_type and radius.
+_GroupArray = Float[np.ndarray, "T M D"] | Int[np.ndarray, "M"] | Float[np.ndarray, "M"]
+
+
 def pad_trajectory(
     trajectory: Trajectory, n_max: int, pad_position: Sequence[float], offset: float = OFFSET
-) -> dict[str, np.ndarray]:
+) -> dict[str, _GroupArray]:
     """The arrays of one LagrangeBench trajectory group, padded to ``n_max`` particles.
 
     Args:

@@ -20,6 +20,11 @@ from dispgns.tuning import thresholds
 _Queries = Float[ArrayLike, "Q D"]
 _QueryIndex = Int[ArrayLike, "Q"]
 _NeighborIndex = Int[ArrayLike, "N M"]
+_QueryNeighbors = Int[ArrayLike, "Q M"]
+# What neighbor_table packs per particle (position, radius, real flag) plus the empty slot; per-pair values
+# of any (broadcast) shape.
+_Table = Float[ArrayLike, "N+1 D+2"]
+_PerPair = Float[ArrayLike, "*pairs"]
 
 __all__ = [
     "external_force",
@@ -57,7 +62,7 @@ def external_force(radius: Radii, config: PhysicsConfig, dim: int) -> Frame:
     return force.at[..., -1].set(-weight)
 
 
-def pair_force_over_distance(r2: jnp.ndarray, a_i: jnp.ndarray, a_j: jnp.ndarray, config: PhysicsConfig) -> jnp.ndarray:
+def pair_force_over_distance(r2: _PerPair, a_i: _PerPair, a_j: _PerPair, config: PhysicsConfig) -> _PerPair:
     """``-U'(max(r, r_m)) / r`` for pairs at squared distance ``r2`` (m^2).
 
     Multiplying by the displacement ``x_i - x_j`` gives the force on ``i`` in N.
@@ -143,7 +148,7 @@ def interaction_force(
     return (query - centre) * sums[:, dim:] - sums[:, :dim]
 
 
-def neighbor_table(position: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+def neighbor_table(position: Frame, radius: Radii, mask: ParticleMask) -> _Table:
     """Per-particle data that a neighbour-list force gathers, packed as ``(N + 1, D + 2)``.
 
     Row ``j < N`` holds ``x_j`` (m, ``D`` columns), ``a_j`` (m) and 1.0 for a
@@ -159,12 +164,12 @@ def neighbor_table(position: jnp.ndarray, radius: jnp.ndarray, mask: jnp.ndarray
 
 
 def neighbor_force(
-    query: jnp.ndarray,
-    query_index: jnp.ndarray,
-    others: jnp.ndarray,
-    table: jnp.ndarray,
+    query: _Queries,
+    query_index: _QueryIndex,
+    others: _QueryNeighbors,
+    table: _Table,
     config: PhysicsConfig,
-) -> jnp.ndarray:
+) -> _Queries:
     """Pair force in N on particle ``query_index[q]`` at ``query[q]`` from its listed neighbours.
 
     The same force as :func:`interaction_force` with a neighbour list, for

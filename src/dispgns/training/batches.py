@@ -57,6 +57,8 @@ _Ids = Int[ArrayLike, "K"]
 _Horizontal = Float[ArrayLike, "*shape 2"]
 _Flips = Bool[ArrayLike, "B D-1"]
 _Turns = Int[ArrayLike, "B"]
+# One entry per window (M windows of all trajectories), host int arrays.
+_WindowIds = Int[np.ndarray, "M"]
 
 __all__ = ["Batch", "BatchStream", "ExampleIndex", "example_index", "quarter_turns"]
 
@@ -103,8 +105,8 @@ class Batch:
 class ExampleIndex(NamedTuple):
     """All windows of a set of trajectories: ``trajectory (M,)`` and ``start (M,)`` int arrays."""
 
-    trajectory: np.ndarray
-    start: np.ndarray
+    trajectory: _WindowIds
+    start: _WindowIds
 
     def __len__(self) -> int:
         return int(self.trajectory.shape[0])

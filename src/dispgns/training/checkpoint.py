@@ -45,7 +45,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization
 
-from dispgns.arrays import Params
+from dispgns.arrays import Params, PerAxis, PRNGKey
 from dispgns.files import staged_directory, write_atomic
 from dispgns.model import ModelConfig, init_params
 from dispgns.training.loggers import json_safe
@@ -213,7 +213,7 @@ def run_config(
     }
 
 
-def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, TrainConfig, dict[str, np.ndarray]]:
+def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, TrainConfig, dict[str, PerAxis]]:
     """``(ModelConfig, TrainConfig, normalization)`` from a :func:`run_config` dict."""
     try:
         model_config = ModelConfig.from_dict(values["model"])
@@ -340,7 +340,7 @@ class Checkpointer:
     def save(
         self,
         state: TrainState,
-        key: jax.Array,
+        key: PRNGKey,
         *,
         data_position: int,
         validation: Mapping[str, Any] | None = None,
@@ -397,8 +397,8 @@ class Checkpointer:
             raise OSError(errno.EIO, f"the checkpoint could not be written ({_reason(error)})", where) from None
 
     def restore(
-        self, template: TrainState, key: jax.Array, *, step: int | None = None, best: bool = False
-    ) -> tuple[TrainState, jax.Array, dict[str, Any]]:
+        self, template: TrainState, key: PRNGKey, *, step: int | None = None, best: bool = False
+    ) -> tuple[TrainState, PRNGKey, dict[str, Any]]:
         """Restore into the structure of ``template`` (e.g. a fresh :func:`create_train_state`).
 
         Returns:

@@ -32,14 +32,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
+from jaxtyping import ArrayLike, PyTree, Shaped
 
+from dispgns.arrays import Flag, PRNGKey, Scalar
 from dispgns.training.batches import Batch
 from dispgns.training.step import TrainState, train_step
 from dispgns.tuning import jitted
@@ -47,6 +49,8 @@ from dispgns.tuning import jitted
 __all__ = ["DataParallel"]
 
 AXIS = "data"
+# Parameters, optimiser state, keys: any pytree of arrays.
+_Tree = PyTree[Shaped[ArrayLike, "..."]]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,7 +94,7 @@ class DataParallel:
             raise ValueError("this process's devices are not contiguous on the mesh")
         return slice(mine[0] * per_device, (mine[-1] + 1) * per_device)
 
-    def replicate(self, tree):
+    def replicate(self, tree: _Tree) -> _Tree:
         """``tree`` replicated on every device of the mesh (parameters, optimiser state, keys)."""
         sharding = NamedSharding(self.mesh, P())
         return jax.tree_util.tree_map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), tree)
@@ -107,7 +111,9 @@ class DataParallel:
         arrays = {f: assemble(getattr(local, f)) for f in ("position", "radius", "mask", "example")}
         return local.replace(**arrays)
 
-    def step(self, compiler_options: Mapping[str, Any] | None = None):
+    def step(
+        self, compiler_options: Mapping[str, Any] | None = None
+    ) -> Callable[[TrainState, Batch, PRNGKey], tuple[TrainState, dict[str, Scalar | Flag]]]:
         """``step(state, batch, key) -> (state, metrics)``: :func:`train_step` with the batch split over the mesh.
 
         ``state`` and ``key`` replicated, ``batch`` split along its first axis
@@ -115,7 +121,13 @@ class DataParallel:
         """
         return functools.partial(jitted(_sharded_step, compiler_options, static_argnames=("parallel",)), parallel=self)
 
-    def train_step(self, state: TrainState, batch: Batch, key: jax.Array, compiler_options=None):
+    def train_step(
+        self,
+        state: TrainState,
+        batch: Batch,
+        key: PRNGKey,
+        compiler_options: Mapping[str, Any] | None = None,
+    ) -> tuple[TrainState, dict[str, Scalar | Flag]]:
         """One data-parallel optimiser step (see :meth:`step`)."""
         return self.step(compiler_options)(state, batch, key)
 
@@ -128,7 +140,7 @@ class DataParallel:
             multihost_utils.sync_global_devices(name)
 
     @staticmethod
-    def local(tree):
+    def local(tree: _Tree) -> _Tree:
         """This process's copy of replicated arrays, as numpy (for host work: validation, export)."""
         return jax.tree_util.tree_map(lambda x: np.asarray(x.addressable_data(0)), tree)
 

@@ -157,7 +157,9 @@ class LoggerGroup:
             raise errors[0]
 
 
-def make_logger(kind: str, run_dir: str | os.PathLike, config: Mapping[str, Any] | None = None, **options):
+def make_logger(
+    kind: str, run_dir: str | os.PathLike, config: Mapping[str, Any] | None = None, **options: Any
+) -> TensorBoardLogger | WandbLogger:
     """The logger ``kind`` (``"tensorboard"`` or ``"wandb"``) for a run directory; ``options`` go to it."""
     if kind == "tensorboard":
         return TensorBoardLogger(Path(run_dir) / TENSORBOARD_DIR, config)
