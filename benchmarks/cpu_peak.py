@@ -31,6 +31,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from _machine import machine_info
 
 _SOURCE = r"""
 #include <immintrin.h>
@@ -191,12 +192,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=5, help="runs per thread count (median)")
     args = parser.parse_args()
-    report = {"cpu": platform.processor(), "cores": os.cpu_count(), "load_average_1min": os.getloadavg()[0]}
-    try:
-        with open("/proc/cpuinfo") as f:
-            report["cpu"] = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+    report = machine_info()
     for threads in range(1, (os.cpu_count() or 1) + 1):
         peak = fma_peak(threads, args.repeats)
         if peak is None:

@@ -47,12 +47,12 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import resource
 import sys
 import time
 from pathlib import Path
 
+import _machine  # benchmarks/_machine.py, beside this script
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -146,21 +146,13 @@ def seconds(fn) -> float:
 
 
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "load_average_1min": os.getloadavg()[0],
-        "jax": jax.__version__,
-        "devices": [str(d) for d in jax.devices()],
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "host_allocator_tuned": tuning.host_allocator_tuned(),
-    }
+    """The shared machine fields (``_machine.py``) and JAX's; the other network benchmarks import this."""
+    return _machine.machine_info(
+        jax=jax.__version__,
+        devices=[str(d) for d in jax.devices()],
+        xla_flags=os.environ.get("XLA_FLAGS", ""),
+        host_allocator_tuned=tuning.host_allocator_tuned(),
+    )
 
 
 def trajectories(n_particles: int, frames: int, seeds=(0, 1)):

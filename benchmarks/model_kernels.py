@@ -43,20 +43,13 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _machine import cpu_model
 
 import dispgns
 from dispgns.model import ModelConfig, apply_network, init_params
 
 REPO = Path(__file__).resolve().parent.parent
 OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return "unknown"
 
 
 def old_model(revision: str, directory: str):

@@ -34,6 +34,7 @@ import statistics
 import tempfile
 import time
 
+import _machine
 import numpy as np
 
 BOUNDS = ((-16.0, 16.0), (-1.0, 1.0))  # the wide16 box in units of L = 0.1 m
@@ -41,18 +42,7 @@ RADII = np.array([2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0]) * 1e-3 / 0.1  # the paper'
 
 
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "load_average_1min": os.getloadavg()[0],
-        "python": platform.python_version(),
-    }
+    return _machine.machine_info(python=platform.python_version())
 
 
 def trajectories(n: int, frames: int, seed: int = 0):

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import resource
 import statistics
 import subprocess
 import sys
 import time
+
+import _machine
 
 PAPER_RADII_M = [2.0e-3, 2.5e-3, 3.0e-3, 3.5e-3, 4.0e-3, 4.5e-3, 5.0e-3]
 HEIGHT_M = 0.1  # the paper's half-height, also the length scale L
@@ -42,18 +43,7 @@ SEED = 0
 
 
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "load_average_1min": os.getloadavg()[0],
-        "python": platform.python_version(),
-    }
+    return _machine.machine_info(python=platform.python_version())
 
 
 def one_size(n_target: int, frames: int, repeats: int) -> dict:

@@ -34,6 +34,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _machine import cpu_model
 
 from dispgns import tuning  # the package imports lazily: nothing of JAX has started yet
 
@@ -65,16 +66,6 @@ def machine_info() -> dict:
         "host_allocator_tuned": tuning.host_allocator_tuned(),
         "compiler_options": OPTIONS,
     }
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def median_seconds(run, repeats: int) -> float:

@@ -13,26 +13,15 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import statistics
 import time
 
 import jax
 import numpy as np
+from _machine import cpu_model
 
 import dispgns
 from dispgns.data.generate import PAPER3D_HALF_SIZE_M, PAPER_TRAIN_RADII_M
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def _model(path):
@@ -101,7 +90,7 @@ def main() -> None:
         "first_call_s": compile_s,
         "symmetrized_over_plain_median": statistics.median(ratios),
         "symmetrized_over_plain_range": [min(ratios), max(ratios)],
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "cpus": os.cpu_count(),
         "load_average": os.getloadavg(),
         "jax": jax.__version__,

@@ -11,26 +11,15 @@ Prints one JSON object per size and a summary line.
 import argparse
 import json
 import os
-import platform
 import statistics
 import time
 
 import jax
 import numpy as np
+from _machine import cpu_model
 
 import dispgns
 from dispgns.validation import check_particles
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def _median_s(fn, repeats: int) -> float:
@@ -90,7 +79,7 @@ def main() -> None:
         json.dumps(
             {
                 "benchmark": "validation_cost",
-                "cpu": _cpu_model(),
+                "cpu": cpu_model(),
                 "cores": os.cpu_count(),
                 "load_average": os.getloadavg(),
                 "jax": jax.__version__,
