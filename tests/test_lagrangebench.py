@@ -191,7 +191,7 @@ def test_lagrangebench_reads_the_export_with_its_own_loader(tiny_dataset, tmp_pa
     python = _lagrangebench_python()
     if python is None:
         pytest.skip(
-            "no LagrangeBench venv: build one with /work/shared/tools/lagrangebench_env.sh and point "
+            "no LagrangeBench venv: build one with tools/lagrangebench_env.sh and point "
             "DISPGNS_LAGRANGEBENCH_PYTHON at its python"
         )
     out = tmp_path / "lb"

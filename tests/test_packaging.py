@@ -30,7 +30,10 @@ def test_citation_file_cites_dispgns_and_the_paper():
 
 def test_sdist_manifest_carries_what_the_tests_read():
     manifest = (ROOT / "MANIFEST.in").read_text().split()
-    for needed in ("tests", "notebooks", "tools", "CONTRIBUTING.md", "LICENSE", "CITATION.cff"):
+    # experiments: test_bad_input compares the packaged configs with experiments/paper, and
+    # test_three_d_pipeline runs experiments/three_d/ship.py. Checked with a fresh install of the sdist
+    # and its fast tests run from the unpacked tree (see tools/check_sdist.sh).
+    for needed in ("tests", "notebooks", "tools", "experiments", "CONTRIBUTING.md", "LICENSE", "CITATION.cff"):
         assert needed in manifest, needed
     assert (ROOT / "tests" / "conftest.py").is_file() and any((ROOT / "tests" / "data").glob("*.npz"))
 

@@ -1,9 +1,9 @@
 """Check a ``dispgns export lagrangebench`` directory with LagrangeBench 0.2.0's own loader and case setup.
 
-Run it with the Python of a LagrangeBench venv (``/work/shared/tools/lagrangebench_env.sh``), not with
+Run it with the Python of a LagrangeBench venv (``tools/lagrangebench_env.sh``), not with
 dispgns's (LagrangeBench pins jax 0.4.29); it imports no dispgns code:
 
-    LB_VENV=/tmp/lb-venv bash /work/shared/tools/lagrangebench_env.sh
+    LB_VENV=/tmp/lb-venv bash tools/lagrangebench_env.sh
     /tmp/lb-venv/bin/python tools/check_lagrangebench.py EXPORT_DIR [EXPORT_DIR/test_unseen ...]
 
 For each directory it

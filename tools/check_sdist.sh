@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# The sdist check of issue 22, "a fresh pip install of the sdist followed by its tests": build the sdist,
+# install it (with the test extras) into a fresh venv, unpack it elsewhere and run its tests from the
+# unpacked tree against the installed package (the tree's src/ is not on the path; the script checks that).
+#
+#   bash tools/check_sdist.sh                                       # the fast default suite
+#   TESTS="tests/test_package.py tests/test_formats.py" bash tools/check_sdist.sh
+#   WORK=/tmp/sdist PYTEST_ARGS="-n 2" bash tools/check_sdist.sh    # on a quiet machine
+#
+# Prints the sdist's size, where dispgns was imported from, then pytest's summary; exits with pytest's code.
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+WORK="${WORK:-/tmp/dispgns-sdist}"
+PYTHON="${PYTHON:-python3}"
+TESTS="${TESTS:-tests}"
+PYTEST_ARGS="${PYTEST_ARGS:-}"
+rm -rf "$WORK"
+mkdir -p "$WORK/unpacked"
+"$PYTHON" -m venv "$WORK/venv"
+"$WORK/venv/bin/python" -m pip install --quiet build
+"$WORK/venv/bin/python" -m build --sdist --outdir "$WORK/dist" "$ROOT" >"$WORK/build.log"
+SDIST="$(ls "$WORK"/dist/dispgns-*.tar.gz)"
+ls -l "$SDIST"
+"$WORK/venv/bin/python" -m pip install --quiet "dispgns[test] @ file://$SDIST"
+tar -xzf "$SDIST" -C "$WORK/unpacked"
+cd "$WORK"/unpacked/dispgns-*
+WHERE="$("$WORK/venv/bin/python" -c 'import dispgns; print(dispgns.__file__)')"
+echo "dispgns imported from $WHERE"
+case "$WHERE" in
+"$WORK/venv/"*) ;;
+*)
+  echo "check_sdist.sh: dispgns was imported from $WHERE, not from the fresh venv" >&2
+  exit 1
+  ;;
+esac
+# shellcheck disable=SC2086
+exec "$WORK/venv/bin/python" -m pytest -q -p no:cacheprovider $PYTEST_ARGS $TESTS
