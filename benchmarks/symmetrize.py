@@ -21,7 +21,7 @@ import numpy as np
 from _machine import cpu_model
 
 import dispgns
-from dispgns.data.generate import PAPER3D_HALF_SIZE_M, PAPER_TRAIN_RADII_M
+from dispgns.data.generate import PAPER3D_HALF_SIZE_M, PAPER_TRAIN_RADII_M, paper3d_spec
 
 
 def _model(path):
@@ -61,9 +61,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer repeats and rounds")
     args = parser.parse_args()
     params, config, source = _model(args.model)
-    physics = dispgns.PhysicsConfig(box_half_size=PAPER3D_HALF_SIZE_M)
+    spec = paper3d_spec()
+    physics = spec.physics
     state = dispgns.sample_initial_state(jax.random.key(0), PAPER_TRAIN_RADII_M, physics, dim=3)
-    frames = np.asarray(dispgns.simulate(state.position, state.velocity, state.radius, physics, n_frames=40))
+    frames = np.asarray(
+        dispgns.simulate(state.position, state.velocity, state.radius, physics, n_frames=40, save_every=spec.save_every)
+    )
     window = (frames[-6:] / PAPER3D_HALF_SIZE_M).astype(np.float32)
     radius = (np.asarray(state.radius) / PAPER3D_HALF_SIZE_M).astype(np.float32)
     capacity = dispgns.fit_capacity(window[-1], config, margin=0.2)

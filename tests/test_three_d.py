@@ -265,6 +265,35 @@ def test_batch_stream_turns_and_mirrors_examples_by_its_own_draws(frames):
         BatchStream([Trajectory], quarter_turns=True, **{**common, "bounds": ((-1, 1), (-2, 2), (-1, 1))})
 
 
+def test_an_augmented_example_is_the_example_of_the_physically_turned_run():
+    # What the model is trained on under augmentation (one mirror in y, then one quarter turn, the
+    # BatchStream's order) must be what the physics does from the turned start: the same input
+    # frames, so the same node features (velocities and the six wall distances) and targets.
+    with np.load(DATA) as d:
+        x0, v0, a, config, scale = d["x0"][:80], d["v0"][:80], d["radius"][:80], PhysicsConfig(), float(d["L"])
+    g = lambda x: turn(mirror(x, 1), 1)
+    with jax.enable_x64(True):
+        run = lambda x, v: (np.asarray(simulate(x, v, a, config, n_frames=8, save_every=15)) / scale).astype(np.float32)
+        base, moved = run(x0, v0), run(g(x0), g(v0))
+
+    class Trajectory:
+        def __init__(self, position):
+            self.position, self.radius = position, (a / scale).astype(np.float32)
+
+    common = dict(input_sequence_length=6, batch_size=1, connectivity_radius=0.2, bounds=((-1, 1),) * 3)
+    augmented = BatchStream([Trajectory(base)], **common).make_batch([0], np.array([[False, True]]), turns=[1])
+    physical = BatchStream([Trajectory(moved)], **common).make_batch([0])
+    np.testing.assert_allclose(augmented.position, physical.position, rtol=0, atol=1e-6)
+    radius = jnp.asarray(Trajectory(base).radius)
+    nodes = [np.asarray(F.node_features(jnp.asarray(b.position[0, :6]), radius)) for b in (augmented, physical)]
+    np.testing.assert_allclose(nodes[0], nodes[1], rtol=0, atol=1e-4)
+    targets = [np.asarray(b.position[0, 6] - 2 * b.position[0, 5] + b.position[0, 4]) for b in (augmented, physical)]
+    np.testing.assert_allclose(targets[0], targets[1], rtol=0, atol=1e-6)
+    # and neither is the unaugmented example (the check can fail)
+    plain = BatchStream([Trajectory(base)], **common).make_batch([0])
+    assert np.abs(plain.position - physical.position).max() > 0.1
+
+
 def _relative_l2(a, b):
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
 
@@ -352,12 +381,15 @@ def floor_equivariance_errors(params, model_config, window, radius):
 
 def paper3d_windows(seed=0, frames=40):
     """Two input windows (frames 10-15 and 34-39) of a fresh trajectory in the paper3d cube, normalised."""
-    from dispgns.data.generate import PAPER3D_HALF_SIZE_M, PAPER_TRAIN_RADII_M
+    from dispgns.data.generate import PAPER3D_HALF_SIZE_M, PAPER_TRAIN_RADII_M, paper3d_spec
     from dispgns.physics import sample_initial_state
 
-    config = PhysicsConfig(box_half_size=PAPER3D_HALF_SIZE_M)
+    spec = paper3d_spec()
+    config = spec.physics
     state = sample_initial_state(jax.random.PRNGKey(seed), PAPER_TRAIN_RADII_M, config, dim=3)
-    truth = np.asarray(simulate(state.position, state.velocity, state.radius, config, n_frames=frames))
+    truth = np.asarray(
+        simulate(state.position, state.velocity, state.radius, config, n_frames=frames, save_every=spec.save_every)
+    )
     truth = (truth / PAPER3D_HALF_SIZE_M).astype(np.float32)
     radius = (np.asarray(state.radius) / PAPER3D_HALF_SIZE_M).astype(np.float32)
     return [truth[10:16], truth[frames - 6 :]], radius
