@@ -17,7 +17,7 @@ import pytest
 
 import dispgns
 from dispgns.model import ModelConfig, init_params
-from dispgns.physics import PhysicsConfig, sample_initial_state, simulate
+from dispgns.physics import PhysicsConfig, particle_count_range, sample_initial_state, simulate
 from dispgns.simulator import predict_acceleration, predict_position, rollout, rollout_batch
 from dispgns.validation import checkify_inputs
 
@@ -172,11 +172,39 @@ def test_sample_initial_state_refuses_up_front(case, kwargs, error, words):
         assert word in str(info.value), (word, str(info.value))
 
 
-def test_a_protocol_count_too_dense_for_one_radius_says_what_to_pass():
-    # One radius: the protocol's count (sized for square cells) is beyond random packing.
+@pytest.mark.parametrize(("dim", "half", "radius", "seeds"), [(2, 0.1, 3e-3, [0, 1, 2]), (3, 0.04, 4e-3, [0])])
+def test_one_radius_places_with_the_count_capped_below_jamming(dim, half, radius, seeds):
+    # One radius: the protocol's count (sized for square cells) fills 0.55 of the area with equal disks, beyond
+    # where random placement jams; the count is capped at RANDOM_PACKING_LIMIT instead of failing every seed.
+    config = PhysicsConfig(box_half_size=half)
+    limit = dispgns.physics.initial.RANDOM_PACKING_LIMIT[dim]
+    for seed in seeds:
+        state = sample_initial_state(jax.random.key(seed), [radius], config, dim=dim)
+        x, a = np.asarray(state.position, np.float64), np.asarray(state.radius, np.float64)
+        protocol_low, _ = particle_count_range(state.start_height, radius, config, dim)
+        low, high = particle_count_range(state.start_height, radius, config, dim, radii_choices=[radius])
+        assert low <= len(a) <= high < protocol_low  # the cap binds, and the count is in its range
+        region = (2 * half) ** (dim - 1) * (half - state.start_height)
+        volume = len(a) * (np.pi * radius**2 if dim == 2 else 4 / 3 * np.pi * radius**3)
+        assert volume / region <= limit
+        gaps = np.linalg.norm(x[:, None] - x[None], axis=-1) - (a[:, None] + a[None]) + np.eye(len(a))
+        assert gaps.min() >= -1e-7 and np.all(np.abs(x) <= half - a[:, None] + 1e-7)
+
+
+def test_the_cap_leaves_the_paper_radii_lists_alone():
+    # The paper's lists fill 0.29-0.39 of the area: their counts stay the protocol's (datasets unchanged).
+    config = PhysicsConfig()
+    for radii in ([2e-3, 2.5e-3, 3e-3, 3.5e-3, 4e-3, 4.5e-3, 5e-3], [2.75e-3, 4.25e-3], [4e-3, 6e-3, 8e-3, 10e-3]):
+        for y0 in np.linspace(-0.025, 0, 11):
+            assert particle_count_range(y0, max(radii), config) == particle_count_range(
+                y0, max(radii), config, radii_choices=radii
+            )
+
+
+def test_a_drawn_count_that_does_not_place_says_what_to_pass():
     with pytest.raises(dispgns.physics.PlacementError, match=r"pass n_particles \(about \d+ fit here\)"):
-        sample_initial_state(jax.random.key(0), [3e-3], start_height=-0.02)
-    # The suggested count does fit.
+        sample_initial_state(jax.random.key(0), [3e-3], start_height=-0.02, candidates=1, max_rounds=1)
+    # A given count that fits does place.
     state = sample_initial_state(jax.random.key(0), [3e-3], n_particles=200, start_height=-0.02)
     assert state.position.shape == (200, 2)
 
@@ -654,15 +682,53 @@ def test_sigterm_again_and_again_exits_143_every_time_and_the_run_ends_exact(tin
     assert len(steps) == len(set(steps))
 
 
-def _mount_tmpfs(path):
+def _mount_tmpfs(path, size="32m"):
     import os
     import shutil
 
     if os.geteuid() != 0 or shutil.which("mount") is None:
         pytest.skip("mounting a file system needs root")
     path.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=32m", "tmpfs", str(path)]).returncode != 0:
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)]).returncode != 0:
         pytest.skip("cannot mount a tmpfs here")
+
+
+def test_a_split_written_onto_a_full_disk_is_one_oserror_with_nothing_left(tmp_path):
+    # HDF5 writing to the disk itself failed in its closing flush with a RuntimeError (a traceback; a
+    # segmentation fault at exit was reported) and kept the file open; now the file is one Python write.
+    import errno
+
+    from dispgns.data import Trajectory, read_split, write_split
+
+    mount = tmp_path / "full"
+    _mount_tmpfs(mount, size="64k")
+    try:
+        x = np.zeros((60, 300, 2), np.float32) + np.linspace(-0.5, 0.5, 300, dtype=np.float32)[None, :, None]
+        big = [Trajectory(position=x, radius=np.full(300, 1e-3, np.float32), particle_type=np.zeros(300, np.int32))]
+        with pytest.raises(OSError) as info:
+            write_split(mount / "train.h5", big)
+        assert info.value.errno == errno.ENOSPC
+        assert list(mount.iterdir()) == []  # no partial file, no temporary
+        small = _one_split(mount / "test.h5")  # the library is in a clean state: the next write works
+        assert read_split(small)[0].position.shape == (8, 2, 2)
+    finally:
+        subprocess.run(["umount", str(mount)])
+
+
+@pytest.mark.slow
+def test_generate_onto_a_disk_that_fills_up_is_one_line_exit_2_and_nothing_left(tmp_path):
+    mount = tmp_path / "full"
+    _mount_tmpfs(mount, size="64k")
+    try:
+        out = mount / "data"
+        argv = [sys.executable, "-m", "dispgns", "generate", "--preset", "tiny", "--out", str(out)]
+        done = subprocess.run(argv, capture_output=True, text=True)
+        errors = [line for line in done.stderr.splitlines() if "error:" in line]
+        assert done.returncode == 2 and len(errors) == 1 and "Traceback" not in done.stderr, done.stderr
+        assert f"cannot write to {out}: No space left on device" in errors[0]
+        assert list(mount.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(mount)])
 
 
 @pytest.mark.slow

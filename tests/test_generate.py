@@ -8,6 +8,7 @@ import jax
 import numpy as np
 import pytest
 
+import dispgns.physics.initial
 from dispgns.cli import main
 from dispgns.data import generate as gen
 from dispgns.data.format import DatasetError, load_dataset
@@ -358,8 +359,10 @@ def test_a_failing_batch_stops_the_others(tmp_path, monkeypatch):
     assert listing(tmp_path) == []
 
 
-def test_impossible_packing_raises_and_leaves_nothing(tmp_path):
-    # 20 mm disks only: the protocol asks for more than the region can hold.
+def test_impossible_packing_raises_and_leaves_nothing(tmp_path, monkeypatch):
+    # 20 mm disks only, and the protocol's own count (without the cap below random jamming): more than the
+    # region can hold.
+    monkeypatch.setattr(dispgns.physics.initial, "RANDOM_PACKING_LIMIT", {})
     spec = DatasetSpec(splits={"train": [(1, [0.02])]}, n_frames=4)
     with pytest.raises(PlacementError, match="train trajectory 00000: could not place particle"):
         generate_dataset(spec, tmp_path / "out", seed=0)

@@ -793,6 +793,13 @@ def wait_for(proc, condition, timeout=600, poll=0.005) -> bool:
     return False
 
 
+def usual_status(returncode: int, signum: int) -> bool:
+    """The status a shell would report for ``signum`` (128 + signum): exited with it after cleaning up, or killed
+    by the signal itself (before the command installed its handler, e.g. during start-up); 0 when the signal came
+    after the run had finished. An abort (-6) or a segmentation fault (-11) is not."""
+    return returncode in (128 + signum, -signum, 0)
+
+
 def start(argv) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "dispgns", *map(str, argv)],
@@ -835,7 +842,7 @@ def signal_cases(trial: Trial, work: Path) -> None:
                 _, err = proc.communicate(timeout=600)
                 expected = -signal.SIGKILL if signum == signal.SIGKILL else 128 + signum
                 crash = [w for w in CRASH_WORDS if w in err]
-                status_ok = proc.returncode in (expected, 0)  # 0: the signal came after the run finished
+                status_ok = usual_status(proc.returncode, signum)
                 if not (run / "config.json").is_file():  # killed before the run existed: start anew
                     again = cli(["train", "--data", tiny, "--out", run, *TINY_TRAIN, "--steps", STEPS, "--overwrite"])
                 else:
@@ -878,7 +885,7 @@ def signal_cases(trial: Trial, work: Path) -> None:
             same = _same_dataset(out, tiny)
             left = [p.name for p in out.parent.iterdir() if p.name.startswith(f".{out.name}") or ".tmp" in p.name]
             expected = -signal.SIGKILL if signum == signal.SIGKILL else 128 + signum
-            passed = proc.returncode in (expected, 0) and not crash and nothing and same and not left
+            passed = usual_status(proc.returncode, signum) and not crash and nothing and same and not left
             return passed, (
                 f"exit {proc.returncode} (expected {expected}); crash {crash}; output absent after the kill {nothing}; "
                 f"rerun identical {same}; leftovers {left}"
@@ -904,7 +911,8 @@ def signal_cases(trial: Trial, work: Path) -> None:
             again = cli(argv)
             left = [p.name for p in out.parent.iterdir() if p.name.startswith(f".{out.name}") or ".tmp" in p.name]
             expected = -signal.SIGKILL if signum == signal.SIGKILL else 128 + signum
-            passed = proc.returncode in (expected, 0) and not crash and nothing and again.returncode == 0 and not left
+            rerun_ok = again.returncode == 0
+            passed = usual_status(proc.returncode, signum) and not crash and nothing and rerun_ok and not left
             return passed, (
                 f"exit {proc.returncode} (expected {expected}); crash {crash}; output absent {nothing}; rerun exit "
                 f"{again.returncode}; leftovers {left}"
@@ -938,6 +946,9 @@ def main() -> int:
         "--match", default="", help="only the cases whose name holds one of these comma-separated texts"
     )
     args = parser.parse_args()
+    # A background job of a non-interactive shell starts with SIGINT ignored, and its children inherit that:
+    # their "Ctrl-C" would be no signal at all. A handler (unlike SIG_IGN) is reset to the default by exec.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     only = [c for c in args.only.split(",") if c]
     unknown = sorted(set(only) - set(CATEGORIES))
     if unknown:

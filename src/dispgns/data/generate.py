@@ -466,7 +466,7 @@ def sample_initial_states(
         # Steps 1-2 of sample_initial_state, with the same key split and dtypes.
         subkeys = jax.random.split(key, 5)
         start_height = float(jax.random.uniform(subkeys[0], (), minval=-0.25 * half, maxval=0.0))
-        low, high = particle_count_range(start_height, max(radii), config, dim)
+        low, high = particle_count_range(start_height, max(radii), config, dim, radii_choices=radii)
         n_particles = int(jax.random.randint(subkeys[1], (), low, high + 1))
         if start_height + 2 * max(radii) > half:
             raise PlacementError(f"{label}: start height {start_height} m leaves no room for radius {max(radii)} m")
@@ -489,7 +489,7 @@ def sample_initial_states(
             raise PlacementError(
                 f"{label}: could not place particle {first} of {n} (radius {radius[first]:.4g} m) without "
                 f"overlap; the packing is too dense for the radii {list(radii)} m above y0 = "
-                f"{draw.start_height:.4g} m. Use fewer particles or a wider spread of radii."
+                f"{draw.start_height:.4g} m (large radii leave little room near the walls). Use smaller radii."
             )
         # Step 5, as in sample_initial_state.
         vs = config.settling_speed(float(choices.min()), dim)

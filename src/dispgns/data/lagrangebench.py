@@ -48,7 +48,6 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import h5py
 import numpy as np
 from jaxtyping import Float, Int
 
@@ -58,6 +57,7 @@ from dispgns.data.format import (
     DatasetError,
     DatasetMetadata,
     Trajectory,
+    hdf5_written_whole,
     load_dataset,
     motion_statistics,
     split_filename,
@@ -65,7 +65,6 @@ from dispgns.data.format import (
     trajectory_name,
     write_metadata,
 )
-from dispgns.files import atomic_path
 
 __all__ = ["LAGRANGEBENCH_SPLITS", "OFFSET", "UNSEEN_DIRECTORY", "export_lagrangebench", "pad_trajectory"]
 
@@ -111,7 +110,7 @@ def pad_trajectory(
 
 def _write_padded_split(path: Path, trajectories: Sequence[Trajectory], n_max: int, pad_position) -> None:
     dim = trajectories[0].dim
-    with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
+    with hdf5_written_whole(path) as file:
         file.attrs["format_version"] = FORMAT_VERSION
         file.attrs["num_particles_max"] = n_max
         file.attrs["position_offset"] = np.full((dim,), OFFSET)

@@ -19,6 +19,7 @@ from dispgns.physics.config import PhysicsConfig
 
 __all__ = [
     "MAX_PARTICLES",
+    "RANDOM_PACKING_LIMIT",
     "InitialState",
     "PlacementError",
     "particle_count_range",
@@ -48,7 +49,12 @@ class PlacementError(RuntimeError):
 
 
 def particle_count_range(
-    start_height: float, max_radius: float, config: PhysicsConfig, dim: int = 2
+    start_height: float,
+    max_radius: float,
+    config: PhysicsConfig,
+    dim: int = 2,
+    *,
+    radii_choices: Sequence[float] | None = None,
 ) -> tuple[int, int]:
     """Inclusive range of particle counts the protocol draws from.
 
@@ -57,9 +63,24 @@ def particle_count_range(
     half-sizes ``h_d`` of ``config``; ``(2L)^(D-1) (L - y0) / (2 a_max)^D`` in
     the paper's square box); the protocol draws ``N`` uniformly from
     ``floor(0.7 N_max) ... floor(0.7 N_max) + 3``.
+
+    Given ``radii_choices`` (m, drawn uniformly), the count is capped where
+    random placement cannot reach it: when ``0.7 N_max`` particles of the mean
+    ball volume would fill more than :data:`RANDOM_PACKING_LIMIT` of the
+    region (one radius or a narrow list: ``0.7 pi / 4 = 0.55`` for equal
+    disks, above where random sequential placement jams), the range moves
+    down so that its largest count fills at most that fraction. The paper's radii
+    lists stay well below it (area fractions 0.29-0.39 in 2-D, volume
+    fractions 0.16-0.23 in 3-D), so their counts are the protocol's.
     """
     region = _region_volume(config.half_sizes(dim), start_height)
     n_scale = int(0.7 * region / (2.0 * max_radius) ** dim)
+    limit = RANDOM_PACKING_LIMIT.get(dim)
+    if radii_choices is not None and limit is not None:
+        mean_volume = float(np.mean(_ball_volume(np.asarray(radii_choices, dtype=float), dim)))
+        if (n_scale + 3) * mean_volume > limit * region:
+            # Never below 1 where the protocol itself places one or more (huge radii: a few particles).
+            n_scale = min(n_scale, max(1, int(limit * region / mean_volume) - 3))
     if n_scale + 3 > _MAX_PARTICLES:
         raise ValueError(
             f"largest radius {max_radius} m gives {n_scale:,} particles in the box, more than the "
@@ -84,6 +105,13 @@ def _ball_volume(radius, dim: int):
 # The default size guard of sample_initial_state: its arrays and the simulation after it grow with N,
 # and a radius typed in the wrong unit asks for tens of millions of particles.
 MAX_PARTICLES = 1_000_000
+
+# The packing fraction (of the placement region) the protocol's count may fill, per dimension. Random
+# sequential placement of equal disks jams near 0.55 (spheres 0.38) in an unbounded region; with the
+# 4,096 draws per particle of sample_initial_state and the walls it reached (all of 4 seeds) 0.47 for
+# 3 mm disks in the paper's box, 0.28 for 3 mm and 0.27 for 4 mm spheres in the paper3d cube, and
+# failed at 0.49 and 0.29-0.31. The limits keep a margin below those.
+RANDOM_PACKING_LIMIT = {2: 0.45, 3: 0.25}
 
 # Particles placed per compiled call of place_particles (Ctrl-C is seen between calls).
 _BLOCK = 4096
@@ -301,7 +329,9 @@ def sample_initial_state(
 
     1. ``y0 ~ U(-H/4, 0)`` with ``H`` the vertical (last) half-size of the
        box (``L`` in the paper's square box), unless ``start_height`` is given;
-    2. ``N`` from :func:`particle_count_range` (unless ``n_particles`` is given);
+    2. ``N`` from :func:`particle_count_range` (unless ``n_particles`` is given),
+       capped for one radius or a narrow list where random placement would
+       jam (:data:`RANDOM_PACKING_LIMIT`);
     3. radii uniformly from ``radii_choices`` (m);
     4. non-overlapping placement in index order (:func:`place_particles`),
        anywhere in the box above ``y0`` (any rectangular box, any D);
@@ -344,7 +374,9 @@ def sample_initial_state(
         raise ValueError(f"start_height must lie inside the box (-{half}, {half}) m, got {start_height}")
     drawn = n_particles is None
     if drawn:
-        low, high = particle_count_range(start_height, float(radii_choices.max()), config, dim)
+        low, high = particle_count_range(
+            start_height, float(radii_choices.max()), config, dim, radii_choices=radii_choices
+        )
         if low < 1:
             raise ValueError(
                 f"the largest radius {radii_choices.max():g} m is too large for the protocol's particle count "
@@ -385,9 +417,9 @@ def sample_initial_state(
             f"overlap after {candidates * max_rounds} random draws; the requested packing is too dense "
             f"({fraction} fraction {filled:.2f} above y0 = {start_height:.4g} m). "
             + (
-                f"The protocol's count for these radii is too dense for random placement (it is sized for the "
-                f"largest radius; random placement of equal disks jams near an area fraction of 0.55): pass "
-                f"n_particles (about {max(1, int(0.9 * first))} fit here), several radii, or a lower start height."
+                f"The protocol's count for these radii is too dense for random placement (large radii leave "
+                f"little room near the walls): pass n_particles (about {max(1, int(0.9 * first))} fit here) or "
+                f"smaller radii."
                 if drawn
                 else "Use fewer particles, smaller radii or a lower start height."
             )
