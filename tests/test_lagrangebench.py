@@ -137,6 +137,7 @@ def test_export_pads_shifts_and_reads_back(dataset, tmp_path):
     with h5py.File(out / "train.h5") as file:
         group = file["00000"]
         position, kinds, radius = group["position"][()], group["particle_type"][()], group["radius"][()]
+        assert all(group[name].fletcher32 for name in ("position", "particle_type", "radius"))  # a flipped bit fails
     n = COUNTS["train"][0]
     assert position.shape == (8, 9, 2) and kinds.shape == radius.shape == (9,)
     assert np.all(kinds[:n] == 0) and PAD_TYPE == -1 and np.all(kinds[n:] == PAD_TYPE) and np.all(radius[n:] == 0)

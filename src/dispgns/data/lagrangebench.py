@@ -117,7 +117,8 @@ def _write_padded_split(path: Path, trajectories: Sequence[Trajectory], n_max: i
         for index, trajectory in enumerate(trajectories):
             group = file.create_group(trajectory_name(index))
             for name, value in pad_trajectory(trajectory, n_max, pad_position).items():
-                group.create_dataset(name, data=value)
+                # Checksums as in dispgns datasets: h5py (LagrangeBench reads with it) checks them on read.
+                group.create_dataset(name, data=value, fletcher32=bool(np.ndim(value) and np.size(value)))
             group.attrs["n_particles"] = trajectory.n_particles
             for key, value in trajectory.attrs.items():
                 if value is not None and key != "n_particles":
