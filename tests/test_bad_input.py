@@ -225,6 +225,12 @@ def test_placement_in_blocks_is_the_placement_in_one_call():
     np.testing.assert_array_equal(np.asarray(full[1]), np.asarray(one[1]))
 
 
+def _ctrl_c_on():
+    """In a child about to start: SIGINT back to its default (a background job of a non-interactive shell, pytest
+    under ``nohup ... &`` included, starts with SIGINT ignored, and Python then never raises KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 def test_ctrl_c_stops_a_long_placement():
     code = textwrap.dedent(
@@ -239,7 +245,7 @@ def test_ctrl_c_stops_a_long_placement():
             sys.exit(130)
         """
     )
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, preexec_fn=_ctrl_c_on)
     assert proc.stdout.readline().strip() == "start"
     import time
 
@@ -543,7 +549,7 @@ def test_a_signalled_training_exits_with_its_usual_status_and_resumes_exactly(si
 
     run = tmp_path / "run"
     argv = [sys.executable, "-m", "dispgns", "train", "--data", str(tiny_dataset), "--out", str(run), *TINY_TRAIN]
-    proc = subprocess.Popen([*argv, "--steps", "100000"], stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([*argv, "--steps", "100000"], stderr=subprocess.PIPE, text=True, preexec_fn=_ctrl_c_on)
     deadline = time.monotonic() + 600
     while not (run / "checkpoints" / "20").is_dir() and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.5)
