@@ -550,9 +550,12 @@ def test_a_signalled_training_exits_with_its_usual_status_and_resumes_exactly(si
     run = tmp_path / "run"
     argv = [sys.executable, "-m", "dispgns", "train", "--data", str(tiny_dataset), "--out", str(run), *TINY_TRAIN]
     proc = subprocess.Popen([*argv, "--steps", "100000"], stderr=subprocess.PIPE, text=True, preexec_fn=_ctrl_c_on)
-    deadline = time.monotonic() + 600
+    # Up to 30 min: under a load of ~15 on 2 cores the first checkpoint took over 10 min, and a signal sent at
+    # start-up instead (killed by it, -15, before the handler exists) tests something else.
+    deadline = time.monotonic() + 1800
     while not (run / "checkpoints" / "20").is_dir() and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.5)
+    assert (run / "checkpoints" / "20").is_dir(), "the first checkpoint was not reached"
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 128 + signum, err
