@@ -17,6 +17,7 @@ import importlib
 import logging
 import os
 import sys
+import threading
 
 # Subcommand modules, in the order shown by --help.
 _COMMANDS = ("demo", "generate", "import_npz", "import_files", "train", "evaluate", "render", "export")
@@ -93,6 +94,15 @@ def _without_closed_loop_reports(hook):
 
     def report(unraisable):
         if isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed":
+            return
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            # A Ctrl-C (or SIGTERM made one) that landed in a callback whose errors are ignored, e.g. JAX's
+            # garbage-collection callback (often during start-up): without this the command ran on to its end.
+            # Sent again from a helper thread a moment later: sent from here, it would be handled inside this
+            # hook and ignored again.
+            from dispgns.cli._common import last_signal
+
+            threading.Timer(0.01, os.kill, (os.getpid(), last_signal())).start()
             return
         hook(unraisable)
 

@@ -44,6 +44,11 @@ def interrupted_status() -> int:
     return 128 + int(_received[-1] if _received else signal.SIGINT)
 
 
+def last_signal() -> int:
+    """The signal behind the latest interrupt: SIGTERM when one was turned into it, else SIGINT."""
+    return int(_received[-1] if _received else signal.SIGINT)
+
+
 def reset_interrupts() -> None:
     """Forget earlier signals (``main()`` may run several commands in one process)."""
     _received.clear()
