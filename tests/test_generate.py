@@ -436,7 +436,7 @@ def test_cli_generate_options(tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--radii", "20"], "could not place particle"),
+        (["--radii", "90"], "does not fit the box"),
         (["--radii", "4,x"], "expected comma-separated radii in mm"),
         (["--radii", "0"], "expected radii > 0 mm"),
         (["--train-count", "-1"], "expected a count >= 0"),
