@@ -595,6 +595,58 @@ def test_a_sigterm_becomes_an_interrupt_with_status_143(tmp_path):
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 
+@pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_during_start_up_waits_for_the_imports_then_exits_with_its_usual_status(signum, status, tmp_path):
+    # The signal lands at the start of the start-up imports, before jaxlib's and h5py's extensions initialise
+    # (inside one, it used to leave an ImportError traceback or a segmentation fault).
+    import os
+
+    (tmp_path / "signal_now.py").write_text(f"import os\nos.kill(os.getpid(), {int(signum)})\n")
+    code = textwrap.dedent(
+        """
+        import sys
+        import dispgns.cli as cli
+        cli._START_UP_MODULES = ("signal_now", *cli._START_UP_MODULES)
+        sys.argv = ["dispgns", "generate", "--preset", "tiny", "--out", sys.argv[1]]
+        cli.entry()
+        """
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(out)],
+        capture_output=True,
+        text=True,
+        env=env,
+        preexec_fn=_ctrl_c_on,
+        timeout=300,
+    )
+    assert (proc.returncode, proc.stderr.strip(), proc.stdout) == (status, "dispgns: interrupted", "")
+    assert not out.exists()
+
+
+def test_an_import_error_caused_by_ctrl_c_is_an_interrupt(monkeypatch, capsys, tmp_path):
+    import dispgns.data as data_module
+    from dispgns.cli import main
+
+    def interrupted_import(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as interrupt:  # what an extension's initialisation turns a Ctrl-C into
+            raise ImportError("Encountered an error while initializing the extension.") from interrupt
+
+    monkeypatch.setattr(data_module, "generate_dataset", interrupted_import)
+    assert main(["generate", "--preset", "tiny", "--out", str(tmp_path / "out")]) == 130
+    assert capsys.readouterr().err.strip().endswith("dispgns generate: interrupted")
+
+    def broken_import(*args, **kwargs):
+        raise ImportError("no module named nowhere")
+
+    monkeypatch.setattr(data_module, "generate_dataset", broken_import)
+    with pytest.raises(ImportError, match="nowhere"):  # any other ImportError stays what it is
+        main(["generate", "--preset", "tiny", "--out", str(tmp_path / "out2")])
+
+
 def test_a_checkpoint_that_cannot_be_written_is_an_oserror_naming_its_folder(tmp_path):
     from dispgns.training.checkpoint import Checkpointer
 

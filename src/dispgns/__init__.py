@@ -17,9 +17,9 @@ from the data and grown after an overflow): :func:`simulate`,
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-from typing import TYPE_CHECKING
+# typing.TYPE_CHECKING without importing typing: the package's import is the start of the ``dispgns`` program,
+# the one moment a Ctrl-C still gives a traceback (see dispgns.cli.entry), so it stays short.
+TYPE_CHECKING = False
 
 __version__ = "0.1.0"
 
@@ -123,6 +123,8 @@ __all__ = [
 
 
 def __getattr__(name: str):
+    import importlib.util
+
     module = _EXPORTS.get(name)
     if module is None and not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
         # A submodule loads on first use too, so annotations naming one (``dispgns.model.ModelConfig`` in

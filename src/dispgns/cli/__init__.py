@@ -11,13 +11,13 @@ arguments and returning an exit code.
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import importlib
-import logging
 import os
 import sys
-import threading
+
+TYPE_CHECKING = False  # typing's, without importing typing (start-up time: see _start_up)
+if TYPE_CHECKING:
+    import argparse
 
 # Subcommand modules, in the order shown by --help.
 _COMMANDS = ("demo", "generate", "import_npz", "import_files", "train", "evaluate", "render", "export")
@@ -28,6 +28,8 @@ class CLIError(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import argparse
+
     from dispgns import __version__
 
     parser = argparse.ArgumentParser(
@@ -76,8 +78,26 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dispgns {args.command}: interrupted", file=sys.stderr)
         return interrupted_status()
+    except ImportError as error:
+        if not _caused_by_interrupt(error):
+            raise
+        # A Ctrl-C inside a C extension's initialisation (a library a command imports late) comes out as
+        # its ImportError.
+        print(f"dispgns {args.command}: interrupted", file=sys.stderr)
+        return interrupted_status()
     finally:
         sys.unraisablehook = previous_hook
+
+
+def _caused_by_interrupt(error: BaseException) -> bool:
+    """Whether a ``KeyboardInterrupt`` is among ``error``'s causes or contexts."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
 
 
 def _without_closed_loop_reports(hook):
@@ -91,6 +111,8 @@ def _without_closed_loop_reports(hook):
     error line the command prints). Nothing is lost: the save has failed
     already and says so. Every other report reaches ``hook``.
     """
+
+    import threading
 
     def report(unraisable):
         if isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed":
@@ -119,7 +141,15 @@ def entry() -> None:
     virtual method called" (status 134) or a segmentation fault (139)
     instead of its usual 143, after everything had been saved.
     """
-    code = main()
+    import contextlib
+    import logging
+
+    interrupt = _start_up()
+    if interrupt:
+        print("dispgns: interrupted", file=sys.stderr)
+        code = 128 + interrupt
+    else:
+        code = main()
     if "jax" in sys.modules:
         import jax
 
@@ -131,6 +161,39 @@ def entry() -> None:
     with contextlib.suppress(Exception):
         sys.stderr.flush()
     os._exit(code)
+
+
+# Imported while Ctrl-C and SIGTERM wait: a signal landing inside a C extension's initialisation (jaxlib's,
+# h5py's) left an ImportError traceback or a segmentation fault instead of the command's usual exit.
+_START_UP_MODULES = ("jax", "h5py")
+
+
+def _start_up() -> int:
+    """Import what every command needs with Ctrl-C and SIGTERM held; the first signal received, or 0.
+
+    A signal that arrives meanwhile is answered after the imports (a second or
+    so at most) with the usual status, 130 or 143, and one line. A signal the
+    caller ignores (``nohup``, a background job) stays ignored.
+    """
+    import signal
+
+    received: list[int] = []
+    held = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            held[signum] = signal.signal(signum, lambda number, frame: received.append(number))
+    try:
+        if "--no-tuning" not in sys.argv[1:]:
+            from dispgns.tuning import tune_host_allocator
+
+            tune_host_allocator(warn_if_late=False)  # before any thread of XLA's allocates
+        for name in _START_UP_MODULES:
+            importlib.import_module(name)
+        build_parser()  # the subcommands' modules
+    finally:
+        for signum, handler in held.items():
+            signal.signal(signum, handler)
+    return received[0] if received else 0
 
 
 if __name__ == "__main__":
