@@ -307,3 +307,33 @@ def test_interrupt_during_a_save_waits_for_it_then_stops(data, tiny_model_config
     restored, _, extra = checkpointer.restore(state, key)
     assert int(restored.step) == 10 and extra["data_position"] == 10
     checkpointer.close()
+
+
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_an_interrupted_export_says_so_and_resume_exports_the_model(signal_name, tiny_dataset, tmp_path, capsys):
+    import os
+    import signal
+
+    import dispgns.training.checkpoint as checkpoint_module
+
+    run = tmp_path / "run"
+    real_export = checkpoint_module.export_model
+
+    def export_then_signal(directory, *args, **kwargs):
+        os.kill(os.getpid(), getattr(signal, signal_name))  # lands while the model is being written
+        return real_export(directory, *args, **kwargs)
+
+    checkpoint_module.export_model = export_then_signal
+    try:
+        code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--steps", "20", *TINY_ARGS])
+    finally:
+        checkpoint_module.export_model = real_export
+    assert code == {"SIGINT": 130, "SIGTERM": 143}[signal_name]
+    error = capsys.readouterr().err
+    assert "interrupted while exporting the model of step 20" in error and "was not updated" in error
+    assert "--resume" in error and not (run / "model").exists()
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the command's handler is gone again
+
+    resumed = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--resume", "--no-progress"])
+    assert resumed == 0
+    assert load_model(run / "model")[2]["record"]["steps"] == 20

@@ -563,11 +563,27 @@ def run(args: argparse.Namespace) -> int:
     if result.interrupted:
         record["interrupted"] = True
     params = state.params if parallel is None else parallel.local(state.params)
+    exported = False
     try:
-        export_model(run_dir / MODEL_DIR, params, model_config, record)
-        _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
+        with sigterm_as_interrupt():
+            export_model(run_dir / MODEL_DIR, params, model_config, record)  # atomic: all or nothing
+            exported = True
+            _plot_log(records, run_dir / "training_curve.png", plot_training_curve)
     except OSError as error:
         raise file_error(error, run_dir) from None
+    except KeyboardInterrupt:
+        # The checkpoint of this step is saved already; only the export (or the plot after it) was cut short.
+        model = (
+            f"{run_dir / MODEL_DIR} holds the model of step {int(state.step)}"
+            if exported
+            else f"{run_dir / MODEL_DIR} was not updated (it holds an earlier export, if any)"
+        )
+        print(
+            f"interrupted while exporting the model of step {int(state.step)}; checkpoint saved in {run_dir}; "
+            f"{model}; export it with dispgns train --data {args.data} --out {args.out} --resume",
+            file=sys.stderr,
+        )
+        return interrupted_status()
     if result.interrupted:
         print(
             f"interrupted at step {int(state.step)} of {last}; checkpoint saved in {run_dir}; "
