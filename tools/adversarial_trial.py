@@ -76,6 +76,8 @@ class Trial:
             passed, observed = check()
         except Exception as error:  # the trial reports, it does not stop
             passed, observed = False, f"trial error: {type(error).__name__}: {error} {traceback.format_exc()[-300:]}"
+        finally:
+            stop_children()  # a case that timed out leaves no command running into the next one
         self.record(category, case, expected, passed, observed)
 
 
@@ -800,13 +802,28 @@ def usual_status(returncode: int, signum: int) -> bool:
     return returncode in (128 + signum, -signum, 0)
 
 
+# The commands started by start() and not yet seen to end.
+_children: list[subprocess.Popen] = []
+
+
 def start(argv) -> subprocess.Popen:
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [sys.executable, "-m", "dispgns", *map(str, argv)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
     )
+    _children.append(proc)
+    return proc
+
+
+def stop_children() -> None:
+    """Kill (SIGKILL) and reap every command start() began that still runs: a case's timeout ends its child too."""
+    while _children:
+        proc = _children.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 def has(path: Path, pattern: str) -> bool:
