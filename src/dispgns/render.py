@@ -89,6 +89,9 @@ def _atomic_write(path, write: Callable[[str], None]) -> str:
 
 
 def _new_figure(figsize, dpi, layout=None) -> Figure:
+    # A whole number of pixels, a hair above: matplotlib < 3.11 truncates figsize * dpi (8.4 in at 50 dpi is
+    # 419.99999... pixels, so 419), newer releases round it; both then give the same image size.
+    figsize = tuple((round(inches * dpi) + 1e-3) / dpi for inches in figsize)
     fig = Figure(figsize=figsize, dpi=dpi, layout=layout)
     FigureCanvasAgg(fig)
     return fig
