@@ -96,9 +96,15 @@ def test_the_host_allocator_tuning_is_opt_in_and_keeps_buffers():
         )
         return float(out.stdout.split()[-1])
 
+    import jaxlib
+
     # Default glibc (a plain import): the temporary buffer is faulted in afresh on every call.
-    assert faults("plain") > 0.5 * TEMP_PAGES
-    assert faults("tuned") < 0.05 * TEMP_PAGES
+    plain = faults("plain")
+    assert plain > 0.5 * TEMP_PAGES
+    if tuple(int(part) for part in jaxlib.__version__.split(".")[:3]) >= (0, 10, 2):
+        assert faults("tuned") < 0.05 * TEMP_PAGES
+    else:  # older jaxlib map part of the buffer afresh anyway (tuning.py's docstring): fewer faults, not none
+        assert faults("tuned") < 0.8 * plain
 
 
 def test_bad_keep_free_bytes_is_rejected():
