@@ -647,6 +647,33 @@ def test_an_import_error_caused_by_ctrl_c_is_an_interrupt(monkeypatch, capsys, t
         main(["generate", "--preset", "tiny", "--out", str(tmp_path / "out2")])
 
 
+def test_a_run_killed_as_it_started_is_replaced_by_the_next_run(tiny_dataset, tmp_path, capsys):
+    from dispgns.cli import main
+
+    # What a SIGKILL between the checkpointer's folders and config.json leaves (seen in the adversarial trial):
+    # a config temporary of a process that is gone, and empty best/ and checkpoints/.
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    run = tmp_path / "run"
+    (run / "best").mkdir(parents=True)
+    (run / "checkpoints").mkdir()
+    (run / f".config.json.{int(gone.stdout)}-278f623032ae.tmp.json").write_text("{")
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--steps", "2", "--no-progress"]
+    argv += ["--set", "model.latent_size=8", "--set", "model.hidden_size=8", "--set", "model.message_passing_steps=1"]
+    assert main(argv) == 0
+    error = capsys.readouterr().err
+    assert "left by a run killed as it started" in error and ".config.json." in error
+    assert (run / "config.json").is_file() and (run / "model").is_dir()
+    assert not [p.name for p in run.iterdir() if ".tmp" in p.name]
+
+    # Anything else in the folder and it is not a killed start: refused as before.
+    other = tmp_path / "other"
+    (other / "checkpoints").mkdir(parents=True)
+    (other / "notes.txt").write_text("mine\n")
+    assert main([*argv[:4], str(other), *argv[5:]]) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+    assert (other / "notes.txt").is_file()
+
+
 def test_a_checkpoint_that_cannot_be_written_is_an_oserror_naming_its_folder(tmp_path):
     from dispgns.training.checkpoint import Checkpointer
 

@@ -289,9 +289,34 @@ def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _Initial
 # ----------------------------------------------------------------------------- output directory
 
 
+def _unfinished_start(run_dir: Path) -> list[Path]:
+    """What a run killed during its start left in ``run_dir``, if that is all it holds; else ``[]``.
+
+    A start writes ``config.json`` (atomically: a temporary first) and the
+    checkpointer's empty ``best/`` and ``checkpoints/``; killed in between
+    (SIGKILL), it leaves those without ``config.json``, a folder neither
+    ``--resume`` nor ``--overwrite`` could take. Temporaries of a process that
+    still runs are not leftovers, so a live run's folder is never one.
+    """
+    from dispgns.files import leftovers
+    from dispgns.training.checkpoint import CONFIG_FILE, LOG_FILE, MODEL_DIR
+
+    if not run_dir.is_dir() or (run_dir / CONFIG_FILE).exists():
+        return []
+    ours = {p.name for name in (CONFIG_FILE, LOG_FILE, MODEL_DIR) for p in leftovers(run_dir / name)}
+    entries = list(run_dir.iterdir())
+    for entry in entries:
+        empty_folder = entry.name in ("best", "checkpoints") and entry.is_dir() and not any(entry.iterdir())
+        if entry.name not in ours and not empty_folder:
+            return []
+    return entries
+
+
 def _check_fresh_run_dir(run_dir: Path, *, overwrite: bool) -> None:
     from dispgns.training.checkpoint import CONFIG_FILE
 
+    if _unfinished_start(run_dir):
+        return  # removed by _create_run_dir, which says so
     if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
         if not overwrite:
             raise CLIError(
@@ -306,7 +331,18 @@ def _check_fresh_run_dir(run_dir: Path, *, overwrite: bool) -> None:
 
 
 def _create_run_dir(run_dir: Path, *, overwrite: bool) -> None:
-    if overwrite and run_dir.is_dir():
+    unfinished = _unfinished_start(run_dir)
+    if unfinished:
+        for entry in unfinished:
+            if entry.is_dir():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+        print(
+            f"{run_dir}: removed {', '.join(sorted(e.name for e in unfinished))} (left by a run killed as it started)",
+            file=sys.stderr,
+        )
+    elif overwrite and run_dir.is_dir():
         shutil.rmtree(run_dir)
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
