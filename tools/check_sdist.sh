@@ -26,11 +26,20 @@ mkdir -p "$WORK/unpacked"
 "$WORK/venv/bin/python" -m build --sdist --outdir "$WORK/dist" "$ROOT" >"$WORK/build.log"
 SDIST="$(ls "$WORK"/dist/dispgns-*.tar.gz)"
 ls -l "$SDIST"
-"$WORK/venv/bin/python" -m pip install --quiet "dispgns[test] @ file://$SDIST"
+# --no-cache-dir: pip would otherwise reuse a wheel it built from an earlier sdist of the same version.
+"$WORK/venv/bin/python" -m pip install --quiet --no-cache-dir "dispgns[test] @ file://$SDIST"
 tar -xzf "$SDIST" -C "$WORK/unpacked"
 cd "$WORK"/unpacked/dispgns-*
 WHERE="$("$WORK/venv/bin/python" -c 'import dispgns; print(dispgns.__file__)')"
 echo "dispgns imported from $WHERE"
+# The installed package is the one just built (not an older build of the same version): same sources.
+"$WORK/venv/bin/python" - "$WHERE" "$WORK"/unpacked/dispgns-*/src/dispgns <<'EOF'
+import filecmp, pathlib, sys
+installed, packed = pathlib.Path(sys.argv[1]).parent, pathlib.Path(sys.argv[2])
+differ = [str(p.relative_to(packed)) for p in packed.rglob("*.py") if not filecmp.cmp(p, installed / p.relative_to(packed), shallow=False)]
+if differ:
+    sys.exit(f"check_sdist.sh: the installed dispgns differs from the sdist's sources: {differ[:5]}")
+EOF
 case "$WHERE" in
 "$WORK/venv/"*) ;;
 *)
