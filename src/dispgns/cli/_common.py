@@ -41,7 +41,7 @@ def _raise_interrupt(signum, frame):
 
 def interrupted_status() -> int:
     """The usual exit status of an interrupted command: 143 after a SIGTERM, 130 after Ctrl-C."""
-    return 128 + int(_received[-1] if _received else signal.SIGINT)
+    return 128 + last_signal()
 
 
 def last_signal() -> int:
