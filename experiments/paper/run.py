@@ -5,6 +5,7 @@
     python experiments/paper/run.py --config experiments/paper/paper_exact.yaml --out runs/paper-exact
     python experiments/paper/run.py --evaluate-only       # re-score the trained run
     python experiments/paper/run.py --ship                # also copy the model into dispgns/pretrained/paper
+    python experiments/paper/run.py --evaluate-only --out runs/data-rich --best --ship --name sedimentation-2d
 
 Stages (each skipped when its output exists, so an interrupted run continues):
 
@@ -115,8 +116,9 @@ def main() -> int:
     parser.add_argument("--steps", type=int, help="training steps (default: the config's num_steps)")
     parser.add_argument("--evaluate-only", action="store_true", help="skip generation and training")
     parser.add_argument(
-        "--ship", action="store_true", help="copy the trained model and its record into src/dispgns/pretrained/paper"
+        "--ship", action="store_true", help="copy the trained model and its record into src/dispgns/pretrained/NAME"
     )
+    parser.add_argument("--name", default="paper", help="the shipped model's name with --ship (default paper)")
     parser.add_argument(
         "--best",
         action="store_true",
@@ -174,7 +176,7 @@ def main() -> int:
     print("\n\n".join(texts))
     print(f"wrote {out / 'results.md'} and {out / 'results.json'}")
     if args.ship:
-        ship(run_dir, summaries, keep_inside_box=args.keep_inside_box == "on", best=args.best)
+        ship(run_dir, summaries, keep_inside_box=args.keep_inside_box == "on", best=args.best, name=args.name)
     return 0
 
 
@@ -189,7 +191,7 @@ def training_time(log: list[dict]) -> float:
     return total + last
 
 
-def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool) -> None:
+def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool, name: str = "paper") -> None:
     """Copy the run's model (its last step, or its best checkpoint) into the package, with the
     evaluation summaries in its record."""
     import dataclasses
@@ -213,7 +215,7 @@ def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool) -> N
         "training_time_s": training_time(log),
     }
     record["normalization"] = config["normalization"]
-    target = REPO / "src" / "dispgns" / "pretrained" / "paper"
+    target = REPO / "src" / "dispgns" / "pretrained" / name
     export_model(target, params, model_config, record)
     shutil.copyfile(run_dir / "training_curve.png", target / "training_curve.png")
     print(f"shipped {info['source']} as {target} (keep_inside_box={keep_inside_box})")

@@ -3,9 +3,14 @@
 ``load_pretrained(name)`` returns ``(params, model_config, info)`` like
 :func:`dispgns.training.checkpoint.load_model`; ``info["record"]`` holds how
 it was trained and what it scored. Each model is a directory of this package
-(``params.msgpack`` + ``model.json``): ``paper`` (2-D disks, the default; see
-``experiments/paper/README.md``) and, once shipped, ``sedimentation-3d``
-(spheres in the ``paper3d`` cube; ``experiments/three_d/``).
+(``params.msgpack`` + ``model.json``):
+
+* ``sedimentation-2d`` (the default): 2-D disks, the ``paper`` model fine-tuned on 400 generated
+  training trajectories (the paper's training radii); the more accurate of the two 2-D models by
+  validation (``experiments/accuracy/RESUME.md``);
+* ``paper``: 2-D disks trained on the paper's 16 training trajectories only, the like-for-like
+  comparison with the paper (``experiments/paper/README.md``);
+* ``sedimentation-3d``, once shipped: spheres in the ``paper3d`` cube (``experiments/three_d/``).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ __all__ = [
     "DEFAULT_CONFIG",
     "DEFAULT_MODEL",
     "MODEL_3D",
+    "PAPER_DATA_MODEL",
     "NamedConfig",
     "default_model_name",
     "load_pretrained",
@@ -31,7 +37,8 @@ __all__ = [
     "shipped_models",
 ]
 
-DEFAULT_MODEL = "paper"
+DEFAULT_MODEL = "sedimentation-2d"
+PAPER_DATA_MODEL = "paper"
 MODEL_3D = "sedimentation-3d"
 DEFAULT_CONFIG = "cpu"
 
@@ -118,8 +125,9 @@ def load_pretrained(
     """A shipped model: ``(params, model_config, info)``.
 
     Args:
-      name: which shipped model: ``"paper"`` (the default: 2-D disks trained on the paper's
-        protocol) or ``"sedimentation-3d"`` (spheres in the ``paper3d`` cube, when shipped);
+      name: which shipped model: ``"sedimentation-2d"`` (the default: 2-D disks, trained on
+        400 generated trajectories), ``"paper"`` (2-D disks, trained on the paper's 16) or
+        ``"sedimentation-3d"`` (spheres in the ``paper3d`` cube, when shipped);
         :func:`shipped_models` lists what this installation has.
 
     Raises:
