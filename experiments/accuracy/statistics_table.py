@@ -55,10 +55,14 @@ def main() -> None:
         for label, key, fmt in ROWS:
             model, floor = mean(summary.get(key)), mean(summary.get(f"chaos_floor_{key}"))
             ratio = "-" if model is None or not floor else f"{abs(model) / abs(floor):.2f}"
-            text.append(
-                f"| {label} | {cell(summary, key, fmt)} | {cell(other.get(split, {}), key, fmt)} | "
-                f"{cell(summary, 'chaos_floor_' + key, fmt)} | {cell(summary, 'constant_velocity_' + key, fmt)} | {ratio} |"
-            )
+            cells = [
+                cell(summary, key, fmt),
+                cell(other.get(split, {}), key, fmt),
+                cell(summary, f"chaos_floor_{key}", fmt),
+                cell(summary, f"constant_velocity_{key}", fmt),
+                ratio,
+            ]
+            text.append(f"| {label} | " + " | ".join(cells) + " |")
         text.append("")
     Path(args.out).write_text("\n".join(text))
     print("\n".join(text))
