@@ -153,7 +153,33 @@ def test_the_default_2d_model_is_the_better_one_by_its_record():
         theirs = paper["evaluation"]["keep_inside_box_on"][split]["mse"]["mean"]
         assert ours < theirs, (split, ours, theirs)
     # Chosen by validation on the same 12 trajectories, not by the test splits.
-    assert default["validation"]["valid_rollout_mse"] < default["selection"]["paper_model_valid_rollout_mse"]
+    selection = default.get("selection")
+    assert selection, f"{DEFAULT_MODEL}'s record says nothing of how it was chosen (run.py --ship --record)"
+    assert default["validation"]["valid_rollout_mse"] == selection["valid_rollout_mse"]
+    assert selection["valid_rollout_mse"] < selection["paper_model_valid_rollout_mse"]
+    assert [step["model"] for step in default["lineage"]][0] == PAPER_DATA_MODEL
+
+
+def test_model_option_takes_a_shipped_name_and_an_existing_path_wins(tmp_path, monkeypatch, model3d):
+    import argparse
+    import shutil
+
+    from dispgns.cli import CLIError
+    from dispgns.cli._common import load_model_argument
+
+    def args(model, best=False):
+        return argparse.Namespace(model=model, best=best, keep_inside_box=None, no_tuning=True)
+
+    monkeypatch.chdir(tmp_path)
+    _, config, info = load_model_argument(args("paper"))
+    assert info["source"] == "dispgns.pretrained:paper" and config.dim == 2
+    with pytest.raises(CLIError, match="--best needs --model RUN"):
+        load_model_argument(args("paper", best=True))
+    with pytest.raises(CLIError):
+        load_model_argument(args("no-such-model"))
+    shutil.copytree(model3d, tmp_path / "paper")  # a directory of that name in the working directory
+    _, config, info = load_model_argument(args("paper"))
+    assert config.dim == 3 and not info.get("source", "").startswith("dispgns.pretrained")
 
 
 @pytest.mark.parametrize("fmt", ["extxyz", "gsd", "vtu"])

@@ -323,11 +323,15 @@ def test_an_interrupted_export_says_so_and_resume_exports_the_model(signal_name,
         os.kill(os.getpid(), getattr(signal, signal_name))  # lands while the model is being written
         return real_export(directory, *args, **kwargs)
 
+    # A shell starts background jobs with SIGINT ignored, and the command keeps an ignored signal ignored
+    # (as a user's `nohup`/`&` asks): give this process Python's usual Ctrl-C handler for the test.
+    previous_sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
     checkpoint_module.export_model = export_then_signal
     try:
         code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--steps", "20", *TINY_ARGS])
     finally:
         checkpoint_module.export_model = real_export
+        signal.signal(signal.SIGINT, previous_sigint)
     assert code == {"SIGINT": 130, "SIGTERM": 143}[signal_name]
     error = capsys.readouterr().err
     assert "interrupted while exporting the model of step 20" in error and "was not updated" in error

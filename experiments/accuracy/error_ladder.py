@@ -1,15 +1,17 @@
 """How much rollout MSE does a given per-frame error cost in this chaotic suspension? (issue 19)
 
 The exact physics is re-run from each test trajectory's stored initial state, and after every frame
-(``save_every`` Euler steps) every real coordinate is shifted by an independent normal draw of standard
-deviation ``delta * L``: a "model" that is the exact physics plus a one-step error of ``delta``. Its
+(``save_every`` Euler steps) from frame ``C`` on (the frames a model predicts; it is given the true frames
+``0 .. C-1``) every real coordinate is shifted by an independent normal draw of standard deviation
+``delta * L``: a "model" that is the exact physics plus a one-step error of ``delta``. Its
 full-rollout MSE against the stored truth (frames ``C`` to the end, normalised units, the same
 average as ``rollout_metrics``) is the least MSE any model with that one-step error can expect, if its
 errors are no more harmful than white noise. A learned model's own one-step error (its rollout MSE at
 horizon 1) then places it on the curve: what a target MSE demands of the one-step accuracy.
 
-``delta = 0`` with a one-off ``1e-6 L`` shift of the initial state is the chaos floor of ``dispgns
-evaluate``. Positions are perturbed, velocities are not; a perturbed centre is kept inside the walls'
+Every rung also has the chaos floor's one-off ``1e-6 L`` shift of the initial state, so ``delta = 0`` is the
+chaos floor of ``dispgns evaluate`` (with other random draws: its numbers differ from ``evaluate``'s by the
+spread of the draws). Positions are perturbed, velocities are not; a perturbed centre is kept inside the walls'
 contact positions.
 
     python experiments/accuracy/error_ladder.py --data datasets/paper --out experiments/accuracy/error_ladder
@@ -39,8 +41,9 @@ DELTAS = (0.0, 1e-6, 1e-5, 3e-5, 1e-4, 3e-4)
 HORIZONS = (10, 50, 100)
 
 
-def perturbed_rollouts(trajectories, config, *, length_scale, save_every, n_frames, delta, seed):
-    """``(K, n_frames, N_max, D)`` positions / L of the physics with a per-frame error ``delta`` (float64)."""
+def perturbed_rollouts(trajectories, config, *, length_scale, save_every, n_frames, delta, seed, input_frames):
+    """``(K, n_frames, N_max, D)`` positions / L of the physics with a per-frame error ``delta`` from frame
+    ``input_frames`` on (float64)."""
     count = len(trajectories)
     budget = max(t.initial_position.shape[0] for t in trajectories)
     dim = trajectories[0].dim
@@ -66,14 +69,18 @@ def perturbed_rollouts(trajectories, config, *, length_scale, save_every, n_fram
         x = jnp.where(m[:, None], jnp.clip(x + 1e-6 * length_scale * jax.random.normal(first, x.shape), lo, hi), x)
         state = init_fn(x, v, a, m)
 
-        def frame(carry, frame_key):
+        def frame(carry, inputs):
+            index, frame_key = inputs
             state = jax.lax.fori_loop(0, save_every, lambda _, s: step_fn(s), carry)
-            shifted = state.position + delta * length_scale * jax.random.normal(frame_key, state.position.shape)
+            # Frames 1 .. C-1 are the model's true inputs; its first prediction is frame C.
+            size = jnp.where(index >= input_frames, delta * length_scale, 0.0)
+            shifted = state.position + size * jax.random.normal(frame_key, state.position.shape)
             position = jnp.where(m[:, None], jnp.clip(shifted, lo, hi), state.position)
             state = dataclasses.replace(state, position=position)
             return state, position
 
-        _, xs = jax.lax.scan(frame, state, jax.random.split(key, n_frames - 1))
+        indices = jnp.arange(1, n_frames)
+        _, xs = jax.lax.scan(frame, state, (indices, jax.random.split(key, n_frames - 1)))
         return jnp.concatenate([state.position[None], xs]) / length_scale
 
     with jax.enable_x64(True):
@@ -99,7 +106,7 @@ def main():
 
     metadata, splits = load_dataset(args.data, args.splits)
     config, scale = metadata.physics_config, metadata.length_scale
-    result = {"data": args.data, "deltas_L": list(DELTAS), "input_frames": args.input_frames, "splits": {}}
+    result = {"data": Path(args.data).name, "deltas_L": list(DELTAS), "input_frames": args.input_frames, "splits": {}}
     for split, trajectories in splits.items():
         n_frames = trajectories[0].n_frames
         rows = []
@@ -113,6 +120,7 @@ def main():
                 n_frames=n_frames,
                 delta=delta,
                 seed=args.seed,
+                input_frames=args.input_frames,
             )
             per = [
                 scores(t.position.astype(np.float64), runs[k, :, : t.n_particles], args.input_frames)
@@ -126,11 +134,11 @@ def main():
             print(split, delta, f"mse {row['mse']['mean']:.3e}", f"h10 {row['mse_h10']['mean']:.2e}", flush=True)
         result["splits"][split] = rows
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".json.tmp")
+    json_path, png_path = Path(f"{args.out}.json"), Path(f"{args.out}.png")
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(f"{args.out}.json.tmp")
     tmp.write_text(json.dumps(result, indent=1) + "\n")
-    tmp.replace(out.with_suffix(".json"))
+    tmp.replace(json_path)
 
     import matplotlib
 
@@ -148,8 +156,8 @@ def main():
     ax.legend(fontsize=7)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out.with_suffix(".png"), dpi=110)
-    print("wrote", out.with_suffix(".json"), out.with_suffix(".png"))
+    fig.savefig(png_path, dpi=110)
+    print("wrote", json_path, png_path)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@
     python experiments/paper/run.py --config experiments/paper/paper_exact.yaml --out runs/paper-exact
     python experiments/paper/run.py --evaluate-only       # re-score the trained run
     python experiments/paper/run.py --ship                # also copy the model into dispgns/pretrained/paper
-    python experiments/paper/run.py --evaluate-only --out runs/data-rich --best --ship --name sedimentation-2d
+    python experiments/paper/run.py --evaluate-only --out runs/data-rich --best --ship --name sedimentation-2d \
+        --record experiments/accuracy/sedimentation-2d_record.json
 
 Stages (each skipped when its output exists, so an interrupted run continues):
 
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -120,6 +122,11 @@ def main() -> int:
     )
     parser.add_argument("--name", default="paper", help="the shipped model's name with --ship (default paper)")
     parser.add_argument(
+        "--record",
+        type=Path,
+        help="with --ship: a JSON object merged into the shipped model's record (e.g. how it was selected)",
+    )
+    parser.add_argument(
         "--best",
         action="store_true",
         help="evaluate and ship the run's best checkpoint by validation instead of its last step",
@@ -131,6 +138,13 @@ def main() -> int:
         help="the shipped model's keep_inside_box setting (default on)",
     )
     args = parser.parse_args()
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
+        parser.error(f"--name {args.name!r}: a plain name of letters, digits, '.', '_' and '-'")
+    if (args.name != "paper" or args.record) and not args.ship:
+        parser.error("--name and --record only apply with --ship")
+    extra = json.loads(args.record.read_text()) if args.record else {}
+    if not isinstance(extra, dict):
+        parser.error(f"--record {args.record}: expected a JSON object")
 
     data, out = Path(args.data), Path(args.out)
     run_dir = out / "run"
@@ -176,7 +190,14 @@ def main() -> int:
     print("\n\n".join(texts))
     print(f"wrote {out / 'results.md'} and {out / 'results.json'}")
     if args.ship:
-        ship(run_dir, summaries, keep_inside_box=args.keep_inside_box == "on", best=args.best, name=args.name)
+        ship(
+            run_dir,
+            summaries,
+            keep_inside_box=args.keep_inside_box == "on",
+            best=args.best,
+            name=args.name,
+            extra=extra,
+        )
     return 0
 
 
@@ -191,7 +212,9 @@ def training_time(log: list[dict]) -> float:
     return total + last
 
 
-def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool, name: str = "paper") -> None:
+def ship(
+    run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool, name: str = "paper", extra: dict | None = None
+) -> None:
     """Copy the run's model (its last step, or its best checkpoint) into the package, with the
     evaluation summaries in its record."""
     import dataclasses
@@ -201,8 +224,10 @@ def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool, name
     params, model_config, info = load_params(run_dir, best=best)
     model_config = dataclasses.replace(model_config, keep_inside_box=keep_inside_box)
     config = read_json(run_dir / "config.json", "configuration of the run")
-    log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines() if line.strip()]
     record = dict(info.get("record", {}))
+    log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines() if line.strip()]
+    # The training that made the shipped parameters: nothing logged after its step (a best checkpoint's).
+    log = [r for r in log if r.get("step", 0) <= record.get("steps", float("inf"))]
     record["evaluation"] = {mode: summary["splits"] for mode, summary in summaries.items()}
     record["paper"] = PAPER
     record["training_log"] = {
@@ -215,6 +240,7 @@ def ship(run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool, name
         "training_time_s": training_time(log),
     }
     record["normalization"] = config["normalization"]
+    record.update(extra or {})
     target = REPO / "src" / "dispgns" / "pretrained" / name
     export_model(target, params, model_config, record)
     shutil.copyfile(run_dir / "training_curve.png", target / "training_curve.png")

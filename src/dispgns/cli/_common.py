@@ -186,9 +186,10 @@ def local_mesh():
 def add_model_argument(parser) -> None:
     parser.add_argument(
         "--model",
-        metavar="PATH",
-        help="an exported model directory (model.json) or a training run directory "
-        "(default: the model shipped with dispgns)",
+        metavar="PATH|NAME",
+        help="an exported model directory (model.json), a training run directory, or the name of a shipped "
+        "model ('paper': trained on the paper's 16 trajectories; default: the model shipped with dispgns for the "
+        "data's dimension, sedimentation-2d in 2-D)",
     )
     parser.add_argument(
         "--best",
@@ -212,8 +213,9 @@ def add_model_argument(parser) -> None:
 def load_model_argument(args, dim: int = 2):
     """``(params, model_config, info)`` for ``--model``/``--best``/``--keep-inside-box`` (default: shipped model).
 
-    Without ``--model`` it is the shipped model for ``dim``-D data (``paper`` in 2-D,
-    ``sedimentation-3d`` in 3-D). The config is the one to compute with (:func:`compute_config`).
+    Without ``--model`` it is the shipped model for ``dim``-D data (``sedimentation-2d`` in 2-D,
+    ``sedimentation-3d`` in 3-D); ``--model NAME`` with the name of a shipped model (e.g. ``paper``)
+    and no such path loads that one. The config is the one to compute with (:func:`compute_config`).
     """
     params, model_config, info = _load(args, dim)
     if getattr(args, "keep_inside_box", None) is not None:
@@ -244,6 +246,15 @@ def _load(args, dim: int = 2):
             return load_pretrained(name)
         except (FileNotFoundError, CheckpointError) as error:
             raise CLIError(f"the shipped model cannot be loaded: {error}; pass --model PATH") from None
+    source = str(args.model)
+    if not Path(source).exists() and "/" not in source and "\\" not in source:
+        # A shipped model by name (e.g. --model paper), as --init-from takes it; an existing path wins.
+        from dispgns.pretrained import load_pretrained, shipped_models
+
+        if source in shipped_models():
+            if args.best:
+                raise CLIError(f"--best needs --model RUN (a training run directory), not the shipped model {source!r}")
+            return load_pretrained(source)
     try:
         return load_params(args.model, best=args.best)
     except CheckpointError as error:

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
                 f"from the same frame 0{_split_note(predicted[args.index], args.split)}"
             )
     else:
-        params, model_config, _ = load_model_argument(args, dim=metadata.dim)
+        params, model_config, model_info = load_model_argument(args, dim=metadata.dim)
         if metadata.dim != model_config.dim:
             raise CLIError(
                 f"{Path(args.data) / 'metadata.json'}: 'dim' is {metadata.dim}, the model has dim {model_config.dim}"
@@ -154,7 +154,11 @@ def run(args: argparse.Namespace) -> int:
         frame_grid(
             truth_frames, prediction, np.asarray(truth.radius), grid_frames, path=staging / "rollout_grid.png", **common
         )
-        source = {"predictions": str(args.predictions)} if args.predictions else {"model": args.model or "shipped"}
+        source = (
+            {"predictions": str(args.predictions)}
+            if args.predictions
+            else {"model": args.model or model_info.get("source", "shipped")}
+        )
         write_json(
             staging / RENDER_FILE,
             {

@@ -52,7 +52,7 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--config",
         metavar="NAME|YAML",
-        help=f"a shipped configuration: '{DEFAULT_CONFIG}' (default: the shipped model's, sized for a CPU, "
+        help=f"a shipped configuration: '{DEFAULT_CONFIG}' (default: the 'paper' model's, sized for a CPU, "
         "about 4 h on 2 cores), 'paper_gpu' (the paper's 2.6 M-parameter network and 2 M steps with "
         "dispgns's fixes: for a GPU) or 'paper' (the authors' exact recipe, for a GPU); or a YAML file with "
         "'model:' and 'train:' sections (ModelConfig / TrainConfig fields; unset fields take the dataclass "
@@ -176,7 +176,7 @@ def resolve_configs(args: argparse.Namespace, default_connectivity_radius: float
         values["train"]["num_steps"] = args.steps
     explicit = {section: dict(fields) for section, fields in values.items()}
     if not args.config:
-        # No --config: the shipped model's configuration, under what the user set (not "explicit":
+        # No --config: the `paper` model's configuration, under what the user set (not "explicit":
         # a resumed run keeps the configuration it was started with).
         base = _config_values(DEFAULT_CONFIG)
         values = {section: {**base[section], **values[section]} for section in ("model", "train")}
@@ -677,7 +677,7 @@ def _plan(args, explicit, params, steps: int) -> str:
         elif named.seconds_per_step is not None:
             text += (
                 f"; expected about {_duration(steps * named.seconds_per_step)} on a 2-core CPU "
-                f"({named.seconds_per_step:.2f} s/step when the shipped model was trained)"
+                f"({named.seconds_per_step:.2f} s/step when the 'paper' model was trained)"
             )
         else:
             text += "; on a CPU this takes weeks"

@@ -65,7 +65,7 @@ class NamedConfig(NamedTuple):
 # The shipped run (experiments/paper/README.md): 65,046 steps in 2.1 h on a 2-core CPU.
 _CONFIGS = {
     "cpu": (
-        "the shipped model's configuration (latent 64, 5 message-passing steps, 120,000 steps), sized for a CPU",
+        "the 'paper' model's configuration (latent 64, 5 message-passing steps, 120,000 steps), sized for a CPU",
         2.1 * 3600 / 65_046,
     ),
     "paper_gpu": (
