@@ -228,6 +228,14 @@ def load_model_argument(args, dim: int = 2):
     return params, compute_config(args, model_config), info
 
 
+def may_name_a_shipped_model(source: str) -> bool:
+    """Whether ``--model``/``--init-from SOURCE`` is read as a shipped model's name (e.g. ``paper``).
+
+    An existing path always wins, and anything with a path separator is a path.
+    """
+    return not Path(source).exists() and "/" not in source and "\\" not in source
+
+
 def _load(args, dim: int = 2):
     from dispgns.training.checkpoint import CheckpointError, load_params
 
@@ -247,8 +255,7 @@ def _load(args, dim: int = 2):
         except (FileNotFoundError, CheckpointError) as error:
             raise CLIError(f"the shipped model cannot be loaded: {error}; pass --model PATH") from None
     source = str(args.model)
-    if not Path(source).exists() and "/" not in source and "\\" not in source:
-        # A shipped model by name (e.g. --model paper), as --init-from takes it; an existing path wins.
+    if may_name_a_shipped_model(source):
         from dispgns.pretrained import load_pretrained, shipped_models
 
         if source in shipped_models():

@@ -17,6 +17,7 @@ from dispgns.cli._common import (
     compute_config,
     file_error,
     interrupted_status,
+    may_name_a_shipped_model,
     network_options,
     sigterm_as_interrupt,
     start_distributed,
@@ -254,7 +255,7 @@ def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _Initial
     from dispgns.training.checkpoint import CheckpointError, load_params
 
     path = Path(source)
-    if not path.exists() and "/" not in source:
+    if may_name_a_shipped_model(source):
         try:
             path = pretrained_path(source)
         except FileNotFoundError as error:
