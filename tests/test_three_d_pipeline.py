@@ -182,6 +182,22 @@ def test_model_option_takes_a_shipped_name_and_an_existing_path_wins(tmp_path, m
     assert config.dim == 3 and not info.get("source", "").startswith("dispgns.pretrained")
 
 
+def test_symmetrize_option_turns_the_models_setting_on_and_off_and_defaults_to_it():
+    import argparse
+
+    from dispgns.cli._common import add_model_argument, load_model_argument
+    from dispgns.pretrained import load_pretrained
+
+    parser = argparse.ArgumentParser()
+    add_model_argument(parser)
+    parser.add_argument("--no-tuning", action="store_true")
+    for name in ("paper", "sedimentation-2d"):
+        shipped = load_pretrained(name)[1].symmetrize
+        for flags, expected in (([], shipped), (["--symmetrize"], True), (["--no-symmetrize"], False)):
+            args = parser.parse_args(["--model", name, "--no-tuning", *flags])
+            assert load_model_argument(args)[1].symmetrize is expected, (name, flags)
+
+
 @pytest.mark.parametrize("fmt", ["extxyz", "gsd", "vtu"])
 def test_export_of_a_3d_dataset_and_of_a_3d_rollout(dataset3d, model3d, tmp_path, fmt):
     meshio = pytest.importorskip("meshio") if fmt == "vtu" else None

@@ -137,6 +137,13 @@ def main() -> int:
         default="on",
         help="the shipped model's keep_inside_box setting (default on)",
     )
+    parser.add_argument(
+        "--symmetrize",
+        choices=("on", "off"),
+        default="off",
+        help="evaluate (both keep_inside_box modes) and ship with every prediction averaged over the mirror "
+        "image (ModelConfig.symmetrize: 2 network evaluations per step; default off)",
+    )
     args = parser.parse_args()
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
         parser.error(f"--name {args.name!r}: a plain name of letters, digits, '.', '_' and '-'")
@@ -178,6 +185,7 @@ def main() -> int:
                 "--keep-inside-box",
                 mode,
                 "--overwrite",
+                "--symmetrize" if args.symmetrize == "on" else "--no-symmetrize",
             ]
             + (["--best"] if args.best else [])
         )
@@ -194,6 +202,7 @@ def main() -> int:
             run_dir,
             summaries,
             keep_inside_box=args.keep_inside_box == "on",
+            symmetrize=args.symmetrize == "on",
             best=args.best,
             name=args.name,
             extra=extra,
@@ -213,7 +222,13 @@ def training_time(log: list[dict]) -> float:
 
 
 def ship(
-    run_dir: Path, summaries: dict, keep_inside_box: bool, best: bool, name: str = "paper", extra: dict | None = None
+    run_dir: Path,
+    summaries: dict,
+    keep_inside_box: bool,
+    best: bool,
+    name: str = "paper",
+    extra: dict | None = None,
+    symmetrize: bool = False,
 ) -> None:
     """Copy the run's model (its last step, or its best checkpoint) into the package, with the
     evaluation summaries in its record."""
@@ -222,7 +237,7 @@ def ship(
     from dispgns.training.checkpoint import export_model, load_params, read_json
 
     params, model_config, info = load_params(run_dir, best=best)
-    model_config = dataclasses.replace(model_config, keep_inside_box=keep_inside_box)
+    model_config = dataclasses.replace(model_config, keep_inside_box=keep_inside_box, symmetrize=symmetrize)
     config = read_json(run_dir / "config.json", "configuration of the run")
     record = dict(info.get("record", {}))
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines() if line.strip()]
@@ -244,7 +259,7 @@ def ship(
     target = REPO / "src" / "dispgns" / "pretrained" / name
     export_model(target, params, model_config, record)
     shutil.copyfile(run_dir / "training_curve.png", target / "training_curve.png")
-    print(f"shipped {info['source']} as {target} (keep_inside_box={keep_inside_box})")
+    print(f"shipped {info['source']} as {target} (keep_inside_box={keep_inside_box}, symmetrize={symmetrize})")
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import dataclasses
 import os
@@ -204,9 +205,11 @@ def add_model_argument(parser) -> None:
     )
     parser.add_argument(
         "--symmetrize",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="average every prediction over the symmetries of the box floor (8 in 3-D, the mirror image in 2-D): "
-        "exactly equivariant whatever the weights, 8 network evaluations per step in 3-D (2 in 2-D)",
+        "exactly equivariant whatever the weights, 8 network evaluations per step in 3-D (2 in 2-D); "
+        "--no-symmetrize turns it off (default: as the model's config says; sedimentation-2d ships with it on)",
     )
 
 
@@ -220,9 +223,9 @@ def load_model_argument(args, dim: int = 2):
     params, model_config, info = _load(args, dim)
     if getattr(args, "keep_inside_box", None) is not None:
         model_config = dataclasses.replace(model_config, keep_inside_box=args.keep_inside_box == "on")
-    if getattr(args, "symmetrize", False):
+    if getattr(args, "symmetrize", None) is not None:
         try:
-            model_config = dataclasses.replace(model_config, symmetrize=True)
+            model_config = dataclasses.replace(model_config, symmetrize=args.symmetrize)
         except ValueError as error:
             raise CLIError(f"--symmetrize: {error}") from None
     return params, compute_config(args, model_config), info
