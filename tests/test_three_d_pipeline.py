@@ -158,6 +158,11 @@ def test_the_default_2d_model_is_the_better_one_by_its_record():
     assert default["validation"]["valid_rollout_mse"] == selection["valid_rollout_mse"]
     assert selection["valid_rollout_mse"] < selection["paper_model_valid_rollout_mse"]
     assert [step["model"] for step in default["lineage"]][0] == PAPER_DATA_MODEL
+    # Shipped with its predictions averaged over the mirror image only because validation says it is better.
+    config = json.loads((pretrained_path(DEFAULT_MODEL) / "model.json").read_text())["model"]
+    if config.get("symmetrize"):
+        choice = selection["symmetrize"]
+        assert choice["valid_rollout_mse_on"] < choice["valid_rollout_mse_off"] == selection["valid_rollout_mse"]
 
 
 def test_model_option_takes_a_shipped_name_and_an_existing_path_wins(tmp_path, monkeypatch, model3d):
