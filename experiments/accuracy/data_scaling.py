@@ -60,6 +60,7 @@ def main(argv=None) -> int:
     write_atomic(out / "data_scaling.json", json.dumps(table, indent=1) + "\n")
 
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullLocator
 
     fig = Figure(figsize=(10, 4), layout="constrained")
     axes = fig.subplots(1, 2)
@@ -73,6 +74,7 @@ def main(argv=None) -> int:
                 ax.plot(*zip(*points), "o-", label=f"step {step:,}")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_locator(NullLocator())  # only the three counts are labelled
         ax.set_xticks(list(RUNS), [str(k) for k in RUNS])
         ax.set_xlabel("training trajectories")
         ax.set_ylabel(label)
