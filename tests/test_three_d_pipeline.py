@@ -163,6 +163,7 @@ def test_the_default_2d_model_is_the_better_one_by_its_record():
     if config.get("symmetrize"):
         choice = selection["symmetrize"]
         assert choice["valid_rollout_mse_on"] < choice["valid_rollout_mse_off"] == selection["valid_rollout_mse"]
+        assert "--symmetrize" in choice["command"].split()
 
 
 def test_model_option_takes_a_shipped_name_and_an_existing_path_wins(tmp_path, monkeypatch, model3d):
@@ -201,6 +202,17 @@ def test_symmetrize_option_turns_the_models_setting_on_and_off_and_defaults_to_i
         for flags, expected in (([], shipped), (["--symmetrize"], True), (["--no-symmetrize"], False)):
             args = parser.parse_args(["--model", name, "--no-tuning", *flags])
             assert load_model_argument(args)[1].symmetrize is expected, (name, flags)
+
+
+def test_fine_tuning_a_shipped_model_trains_the_network_alone_unless_the_config_asks():
+    from dispgns.cli.train import _initial_model
+    from dispgns.pretrained import load_pretrained
+
+    assert load_pretrained("sedimentation-2d")[1].symmetrize  # shipped with the mirror average
+    start = _initial_model("sedimentation-2d", {"model": {}, "train": {}})
+    assert not start.model_config.symmetrize and not start.model_config.keep_inside_box
+    asked = _initial_model("sedimentation-2d", {"model": {"symmetrize": True}, "train": {}})
+    assert asked.model_config.symmetrize
 
 
 @pytest.mark.parametrize("fmt", ["extxyz", "gsd", "vtu"])

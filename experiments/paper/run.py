@@ -166,7 +166,7 @@ def main() -> int:
         run_stage(train)
     texts, summaries = [], {}
     for mode, title in (
-        ("off", "the network alone (the paper's method)"),
+        ("off", "the network alone (the paper's method)" if args.symmetrize == "off" else "no box guard"),
         ("on", "with predicted centres kept inside the box (keep_inside_box)"),
     ):
         eval_dir = out / f"eval-box-{mode}"

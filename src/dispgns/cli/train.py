@@ -244,7 +244,7 @@ class _InitialModel(NamedTuple):
 
 
 # Model fields a fine-tuning run may set: they change what is done with the network, not its weights.
-_FINE_TUNE_MODEL_FIELDS = ("keep_inside_box", "bounds", "kernels", "matmul_dtype")
+_FINE_TUNE_MODEL_FIELDS = ("keep_inside_box", "symmetrize", "bounds", "kernels", "matmul_dtype")
 
 
 def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _InitialModel:
@@ -275,9 +275,10 @@ def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _Initial
             + f"; only {', '.join('model.' + f for f in _FINE_TUNE_MODEL_FIELDS)} may change"
         )
     changes = {f: v for f, v in explicit["model"].items() if f in _FINE_TUNE_MODEL_FIELDS}
-    if "keep_inside_box" not in changes:
-        # Trained as the network alone (the position guard is a rollout-time choice of the export).
-        changes["keep_inside_box"] = False
+    # Trained as the network alone: the position guard and the floor-symmetry average are rollout-time choices of
+    # the export (a shipped model may have them on), unless the configuration asks for them.
+    changes.setdefault("keep_inside_box", False)
+    changes.setdefault("symmetrize", False)
     try:
         model_config = dataclasses.replace(model_config, **changes)
     except (TypeError, ValueError) as error:

@@ -126,7 +126,10 @@ def load_pretrained(
 
     Args:
       name: which shipped model: ``"sedimentation-2d"`` (the default: 2-D disks, trained on
-        400 generated trajectories), ``"paper"`` (2-D disks, trained on the paper's 16) or
+        400 generated trajectories; its config has ``symmetrize=True``, every prediction averaged
+        with the mirrored one, two network evaluations per step:
+        ``dataclasses.replace(model_config, symmetrize=False)`` for one), ``"paper"`` (2-D disks,
+        trained on the paper's 16) or
         ``"sedimentation-3d"`` (spheres in the ``paper3d`` cube, when shipped);
         :func:`shipped_models` lists what this installation has.
 
