@@ -105,19 +105,28 @@ def summarise(evaluation: dict) -> dict:
     return splits
 
 
+def _shown(path: Path | str) -> str:
+    """``path`` relative to the repository when it lies inside it (results.md reads the same on every machine)."""
+    path = Path(path).absolute()
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
 def results_markdown(evaluation: dict, splits: dict, record: dict, model_dir: Path, eval_dir: Path) -> str:
     """``results.md``: what was shipped, the table of both splits and the targets."""
     summaries = {s: evaluation["splits"][s]["summary"] for s in SPLITS}
+    symmetrized = record["evaluation"].get("symmetrize")
     lines = [
         "# The 3-D model: evaluation of the shipped checkpoint",
         "",
-        f"Written by `experiments/three_d/ship.py` from `{record['source']}` (step {record['steps']}), "
-        f"exported to `{model_dir}`; dataset `{evaluation['dataset']['path']}` (preset "
+        f"Written by `experiments/three_d/ship.py` from `{_shown(record['source'])}` (step {record['steps']}), "
+        f"exported to `{_shown(model_dir)}`"
+        + (", predictions averaged over the floor's 8 symmetries (`symmetrize`)" if symmetrized else "")
+        + f"; dataset `{evaluation['dataset']['path']}` (preset "
         f"`{evaluation['dataset']['preset']}`, seed {evaluation['dataset']['seed']}), {evaluation['frames']} frames "
         f"per trajectory, the first {record['model']['input_sequence_length']} given. Training: "
         f"{record['training_log']['training_time_s'] / 3600:.2f} h of wall time "
         f"({record['training_log']['cpu_time_s'] / 3600:.2f} CPU h) over all resumed segments. "
-        f"Full metrics and pictures: `{eval_dir}`.",
+        f"Full metrics and pictures: `{_shown(eval_dir)}`.",
         "",
         "| metric | " + " | ".join(f"{s} ({summaries[s]['n_trajectories']} trajectories)" for s in SPLITS) + " |",
         "| --- | --- | --- |",

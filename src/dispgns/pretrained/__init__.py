@@ -10,7 +10,8 @@ it was trained and what it scored. Each model is a directory of this package
   validation (``experiments/accuracy/RESUME.md``);
 * ``paper``: 2-D disks trained on the paper's 16 training trajectories only, the like-for-like
   comparison with the paper (``experiments/paper/README.md``);
-* ``sedimentation-3d``, once shipped: spheres in the ``paper3d`` cube (``experiments/three_d/``).
+* ``sedimentation-3d``: spheres in the ``paper3d`` cube, predictions averaged over the floor's 8
+  symmetries (``experiments/three_d/``).
 """
 
 from __future__ import annotations
@@ -130,7 +131,7 @@ def load_pretrained(
         with the mirrored one, two network evaluations per step:
         ``dataclasses.replace(model_config, symmetrize=False)`` for one), ``"paper"`` (2-D disks,
         trained on the paper's 16) or
-        ``"sedimentation-3d"`` (spheres in the ``paper3d`` cube, when shipped);
+        ``"sedimentation-3d"`` (spheres in the ``paper3d`` cube);
         :func:`shipped_models` lists what this installation has.
 
     Raises:
