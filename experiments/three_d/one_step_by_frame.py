@@ -10,8 +10,8 @@ training loss per component (radius-normalised acceleration divided by the train
 - ``zero``: the same for predicting the mean acceleration (what a model that learned nothing scores);
 - ``top5``: the share of the frame's error carried by its 5 worst particles.
 
-The ratio model / zero per phase says how much of the signal the network explains while the spheres
-settle freely and while they collide and form the bed.
+Then, per phase (free settling, collisions, bed; ``PHASES``), the means of the three and the phase's
+share of the summed error: the ratio model / zero says how much of the signal the network explains.
 """
 
 from __future__ import annotations
@@ -24,6 +24,10 @@ import numpy as np
 
 from dispgns import load_dataset, predict_acceleration
 from dispgns.training.checkpoint import load_params
+
+# The phases of a paper3d trajectory (frames, inclusive): the spheres settle freely, collide and form the
+# bed (frames ~90-150 in the 8 cm cube), then sit in it.
+PHASES = {"free settling": (0, 89), "collisions": (90, 149), "bed": (150, 10**6)}
 
 
 def main() -> None:
@@ -56,8 +60,22 @@ def main() -> None:
                 {"trajectory": k, "frame": t, "model": float(error.mean()), "zero": float(zero.mean()), "top5": top5}
             )
             print(f"trajectory {k} frame {t:3d}: model {error.mean():.3g}, zero {zero.mean():.3g}, top5 {top5:.2f}")
+    phases = {}
+    for name, (first, last) in PHASES.items():
+        chosen = [r for r in rows if first <= r["frame"] <= last]
+        if chosen:
+            model, zero = (float(np.mean([r[key] for r in chosen])) for key in ("model", "zero"))
+            top5 = float(np.mean([r["top5"] for r in chosen]))
+            share = sum(r["model"] for r in chosen) / sum(r["model"] for r in rows)
+            phases[name] = {"frames": [first, last], "model": model, "zero": zero, "top5": top5, "share": share}
+            frames = f"{first}-{last}" if last < 10**6 else f"{first} on"
+            print(
+                f"{name} (frames {frames}): model {model:.3g}, zero {zero:.3g} (ratio {model / zero:.2f}), "
+                f"top5 {top5:.2f}, share of the summed error {share:.0%}"
+            )
     if args.out:
-        args.out.write_text(json.dumps({"run": str(args.run), "rows": rows}, indent=1) + "\n")
+        record = {"run": str(args.run), "best": args.best, "phases": phases, "rows": rows}
+        args.out.write_text(json.dumps(record, indent=1) + "\n")
 
 
 if __name__ == "__main__":

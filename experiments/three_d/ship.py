@@ -107,7 +107,7 @@ def summarise(evaluation: dict) -> dict:
 
 def _shown(path: Path | str) -> str:
     """``path`` relative to the repository when it lies inside it (results.md reads the same on every machine)."""
-    path = Path(path).absolute()
+    path = Path(path).resolve()
     return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
 
 
@@ -126,7 +126,7 @@ def results_markdown(evaluation: dict, splits: dict, record: dict, model_dir: Pa
         f"per trajectory, the first {record['model']['input_sequence_length']} given. Training: "
         f"{record['training_log']['training_time_s'] / 3600:.2f} h of wall time "
         f"({record['training_log']['cpu_time_s'] / 3600:.2f} CPU h) over all resumed segments. "
-        f"Full metrics and pictures: `{_shown(eval_dir)}`.",
+        f"Pictures: `results/`; full metrics in `{_shown(eval_dir)}` (not committed).",
         "",
         "| metric | " + " | ".join(f"{s} ({summaries[s]['n_trajectories']} trajectories)" for s in SPLITS) + " |",
         "| --- | --- | --- |",
