@@ -291,6 +291,13 @@ def test_ship_tool_exports_a_run_with_its_record_and_results(dataset3d, tmp_path
     assert "| chaos floor MSE (physics re-run, 1e-6 L perturbation) |" in text and "NOT met" in text
     assert json.loads(results.with_suffix(".json").read_text())["steps"] == 20
     assert (tmp_path / "results" / "statistics_test_unseen.png").is_file()
+    # A run started with --init-from is named as the fine-tune of its parent, whose training time is not in its log.
+    assert info["record"]["init_from"] is None and "a fine-tune of" not in text
+    evaluation = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    parent = {"model": str(tmp_path / "parent"), "source": str(tmp_path / "parent" / "checkpoints" / "80"), "steps": 80}
+    record = {**info["record"], "init_from": parent}
+    text = ship.results_markdown(evaluation, ship.summarise(evaluation), record, out, tmp_path / "e")
+    assert f"segments of this run, a fine-tune of `{parent['source']}` (step 80; its training is not counted" in text
 
 
 def test_without_model_the_commands_load_the_shipped_model_of_the_datas_dimension(model3d, monkeypatch):

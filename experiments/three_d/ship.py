@@ -125,8 +125,14 @@ def results_markdown(evaluation: dict, splits: dict, record: dict, model_dir: Pa
         f"`{evaluation['dataset']['preset']}`, seed {evaluation['dataset']['seed']}), {evaluation['frames']} frames "
         f"per trajectory, the first {record['model']['input_sequence_length']} given. Training: "
         f"{record['training_log']['training_time_s'] / 3600:.2f} h of wall time "
-        f"({record['training_log']['cpu_time_s'] / 3600:.2f} CPU h) over all resumed segments. "
-        f"Pictures: `results/`; full metrics in `{_shown(eval_dir)}` (not committed).",
+        f"({record['training_log']['cpu_time_s'] / 3600:.2f} CPU h) over all resumed segments"
+        + (
+            f" of this run, a fine-tune of `{_shown(record['init_from']['source'])}` (step "
+            f"{record['init_from']['steps']}; its training is not counted here). "
+            if record.get("init_from")
+            else ". "
+        )
+        + f"Pictures: `results/`; full metrics in `{_shown(eval_dir)}` (not committed).",
         "",
         "| metric | " + " | ".join(f"{s} ({summaries[s]['n_trajectories']} trajectories)" for s in SPLITS) + " |",
         "| --- | --- | --- |",
@@ -265,6 +271,9 @@ def main(argv: list[str] | None = None) -> int:
             "meets_targets": all(t["met"] for s in splits.values() for t in s["targets"].values()),
             "training_log": {k: v for k, v in log.items() if k != "records"},
             "normalization": config["normalization"],
+            # A fine-tune's log starts at its own step 0: the run it started from is named here so that
+            # results.md does not present the fine-tune's time as the model's whole training.
+            "init_from": config.get("init_from"),
         }
     )
 

@@ -1,0 +1,65 @@
+"""Average the parameters of several models of one fine-tuning lineage into one exported model (a "model soup").
+
+Track G (RESUME.md) checked whether averaging the weights of checkpoints whose validation rollouts swing by +-15 %
+smooths them out; it did not. Every source must be trained on the same dataset (same normalisation statistics,
+checked) and share one model configuration, whose settings (symmetrize, keep_inside_box) the soup keeps from the
+first source.
+
+    python experiments/accuracy/soup.py OUT SOURCE [SOURCE ...]
+
+A SOURCE is an exported model directory, a shipped model's name, or a training run directory; a run directory
+followed by ``:best`` means its best checkpoint by validation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+
+import jax
+import numpy as np
+
+from dispgns.pretrained import pretrained_path
+from dispgns.training.checkpoint import export_model, load_params
+
+# Prediction-time settings, not part of what the weights mean.
+UNCOMPARED = {"symmetrize": False, "keep_inside_box": False}
+
+
+def load(source: str):
+    best = source.endswith(":best")
+    path = source.removesuffix(":best")
+    if "/" not in path and not best:
+        path = str(pretrained_path(path))
+    return load_params(path, best=best)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("out", help="the model directory to write")
+    parser.add_argument("sources", nargs="+", help="models to average (see the module docstring)")
+    args = parser.parse_args(argv)
+    loaded = [load(source) for source in args.sources]
+    first_params, first_config, _ = loaded[0]
+    for source, (params, config, _) in zip(args.sources[1:], loaded[1:], strict=True):
+        if dataclasses.replace(config, **UNCOMPARED) != dataclasses.replace(first_config, **UNCOMPARED):
+            print(f"{source}: its model configuration differs from {args.sources[0]}'s", file=sys.stderr)
+            return 2
+        gaps = jax.tree_util.tree_map(
+            lambda a, b: float(np.max(np.abs(np.asarray(a) - np.asarray(b)))),
+            params["normalization"],
+            first_params["normalization"],
+        )
+        if max(jax.tree_util.tree_leaves(gaps)) > 1e-6:
+            print(f"{source}: its normalisation differs from {args.sources[0]}'s (another dataset)", file=sys.stderr)
+            return 2
+    soup = jax.tree_util.tree_map(lambda *leaves: sum(leaves) / len(leaves), *[params for params, _, _ in loaded])
+    sources = [info.get("source", source) for source, (_, _, info) in zip(args.sources, loaded, strict=True)]
+    export_model(args.out, soup, first_config, {"soup_of": sources})
+    print(f"wrote {args.out}: the mean of {len(loaded)} models")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,61 @@
+"""experiments/accuracy/soup.py: the weight average of exported models, refused across datasets or architectures."""
+
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from dispgns.model import ModelConfig, init_params
+from dispgns.training.checkpoint import export_model, load_model
+
+NORM = {
+    "velocity_mean": np.zeros(2),
+    "velocity_std": np.full(2, 0.05),
+    "acceleration_mean": np.zeros(2),
+    "acceleration_std": np.full(2, 0.002),
+}
+
+
+@pytest.fixture(scope="module")
+def soup():
+    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / "soup.py"
+    spec = importlib.util.spec_from_file_location("soup", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _export(directory, seed, config, norm=NORM):
+    export_model(directory, init_params(jax.random.key(seed), config, norm), config, {"steps": seed})
+    return str(directory)
+
+
+def test_the_soup_is_the_leafwise_mean_and_keeps_the_first_models_settings(soup, tmp_path):
+    config = ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1)
+    a = _export(tmp_path / "a", 0, dataclasses.replace(config, symmetrize=True))
+    b = _export(tmp_path / "b", 1, config)
+    assert soup.main([str(tmp_path / "soup"), a, b]) == 0
+    mixed, mixed_config, info = load_model(tmp_path / "soup")
+    (pa, config_a, _), (pb, _, _) = load_model(a), load_model(b)
+    expected = jax.tree_util.tree_map(lambda x, y: (x + y) / 2, pa, pb)
+    for got, want in zip(jax.tree_util.tree_leaves(mixed), jax.tree_util.tree_leaves(expected), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    assert mixed_config == config_a and info["record"]["soup_of"] == [a, b]
+    # Different weights really were averaged (a soup of one model would pass the check above trivially).
+    leaves = zip(jax.tree_util.tree_leaves(pa["network"]), jax.tree_util.tree_leaves(pb["network"]), strict=True)
+    assert any(not np.allclose(x, y) for x, y in leaves)
+
+
+def test_models_of_other_data_or_architecture_are_refused_and_nothing_is_written(soup, tmp_path, capsys):
+    config = ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1)
+    a = _export(tmp_path / "a", 0, config)
+    wider = _export(tmp_path / "wider", 1, ModelConfig(latent_size=16, hidden_size=8, message_passing_steps=1))
+    other_data = _export(tmp_path / "other", 2, config, {**NORM, "velocity_std": np.full(2, 0.07)})
+    assert soup.main([str(tmp_path / "s1"), a, wider]) == 2
+    assert "model configuration differs" in capsys.readouterr().err
+    assert soup.main([str(tmp_path / "s2"), a, other_data]) == 2
+    assert "normalisation differs" in capsys.readouterr().err
+    assert not (tmp_path / "s1").exists() and not (tmp_path / "s2").exists()
