@@ -59,3 +59,29 @@ def test_models_of_other_data_or_architecture_are_refused_and_nothing_is_written
     assert soup.main([str(tmp_path / "s2"), a, other_data]) == 2
     assert "normalisation differs" in capsys.readouterr().err
     assert not (tmp_path / "s1").exists() and not (tmp_path / "s2").exists()
+
+
+def test_a_shipped_name_is_read_unless_a_path_of_that_name_exists(soup, tmp_path, monkeypatch):
+    from dispgns.pretrained import load_pretrained
+
+    monkeypatch.chdir(tmp_path)
+    assert soup.main(["soup", "paper", "paper"]) == 0  # the soup of a model with itself is the model
+    mixed, _, info = load_model(tmp_path / "soup")
+    shipped, _, _ = load_pretrained("paper")
+    for got, want in zip(jax.tree_util.tree_leaves(mixed), jax.tree_util.tree_leaves(shipped), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert info["record"]["soup_of"] == ["dispgns.pretrained:paper"] * 2
+    local = _export(tmp_path / "paper", 3, ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1))
+    assert soup.main(["soup2", "paper", local]) == 0  # ./paper exists: it is the path, not the shipped model
+    assert load_model(tmp_path / "soup2")[2]["record"]["soup_of"] == ["paper", local]
+
+
+def test_a_missing_model_or_best_checkpoint_is_a_one_line_error(soup, tmp_path, capsys):
+    a = _export(tmp_path / "a", 0, ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1))
+    assert soup.main([str(tmp_path / "s"), a, str(tmp_path / "absent")]) == 2
+    assert "absent" in capsys.readouterr().err
+    assert soup.main([str(tmp_path / "s"), a, "no-such-model"]) == 2
+    assert "no-such-model" in capsys.readouterr().err
+    assert soup.main([str(tmp_path / "s"), a, a + ":best"]) == 2  # an exported model has no best checkpoint
+    assert capsys.readouterr().err.startswith("soup.py: ")
+    assert not (tmp_path / "s").exists()

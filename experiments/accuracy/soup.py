@@ -7,8 +7,8 @@ first source.
 
     python experiments/accuracy/soup.py OUT SOURCE [SOURCE ...]
 
-A SOURCE is an exported model directory, a shipped model's name, or a training run directory; a run directory
-followed by ``:best`` means its best checkpoint by validation.
+A SOURCE is an exported model directory, a training run directory (followed by ``:best``: its best checkpoint by
+validation) or a shipped model's name; an existing path wins over a name, as in ``dispgns --model``.
 """
 
 from __future__ import annotations
@@ -20,19 +20,24 @@ import sys
 import jax
 import numpy as np
 
-from dispgns.pretrained import pretrained_path
-from dispgns.training.checkpoint import export_model, load_params
+from dispgns.cli._common import may_name_a_shipped_model
+from dispgns.pretrained import load_pretrained
+from dispgns.training.checkpoint import CheckpointError, export_model, load_params
 
-# Prediction-time settings, not part of what the weights mean.
-UNCOMPARED = {"symmetrize": False, "keep_inside_box": False}
+# Settings a fine-tune may change without changing what the weights mean (dispgns train --init-from's list).
+UNCOMPARED = ("keep_inside_box", "symmetrize", "bounds", "kernels", "matmul_dtype")
 
 
 def load(source: str):
     best = source.endswith(":best")
     path = source.removesuffix(":best")
-    if "/" not in path and not best:
-        path = str(pretrained_path(path))
+    if not best and may_name_a_shipped_model(path):
+        return load_pretrained(path)
     return load_params(path, best=best)
+
+
+def _network_fields(config) -> dict:
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in UNCOMPARED}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,10 +45,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", help="the model directory to write")
     parser.add_argument("sources", nargs="+", help="models to average (see the module docstring)")
     args = parser.parse_args(argv)
-    loaded = [load(source) for source in args.sources]
+    try:
+        loaded = [load(source) for source in args.sources]
+    except (FileNotFoundError, CheckpointError) as error:
+        print(f"soup.py: {error}", file=sys.stderr)
+        return 2
     first_params, first_config, _ = loaded[0]
     for source, (params, config, _) in zip(args.sources[1:], loaded[1:], strict=True):
-        if dataclasses.replace(config, **UNCOMPARED) != dataclasses.replace(first_config, **UNCOMPARED):
+        if _network_fields(config) != _network_fields(first_config):
             print(f"{source}: its model configuration differs from {args.sources[0]}'s", file=sys.stderr)
             return 2
         gaps = jax.tree_util.tree_map(
