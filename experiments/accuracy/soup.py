@@ -20,20 +20,15 @@ import sys
 import jax
 import numpy as np
 
-from dispgns.cli._common import may_name_a_shipped_model
-from dispgns.pretrained import load_pretrained
-from dispgns.training.checkpoint import CheckpointError, export_model, load_params
-
-# Settings a fine-tune may change without changing what the weights mean (dispgns train --init-from's list).
-UNCOMPARED = ("keep_inside_box", "symmetrize", "bounds", "kernels", "matmul_dtype")
+from dispgns.cli import CLIError
+from dispgns.cli._common import _load
+from dispgns.cli.train import _FINE_TUNE_MODEL_FIELDS as UNCOMPARED  # what a fine-tune may change
+from dispgns.training.checkpoint import export_model
 
 
 def load(source: str):
-    best = source.endswith(":best")
-    path = source.removesuffix(":best")
-    if not best and may_name_a_shipped_model(path):
-        return load_pretrained(path)
-    return load_params(path, best=best)
+    """``source`` read as ``dispgns evaluate --model`` reads it (``:best`` = ``--best``)."""
+    return _load(argparse.Namespace(model=source.removesuffix(":best"), best=source.endswith(":best")))
 
 
 def _network_fields(config) -> dict:
@@ -47,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         loaded = [load(source) for source in args.sources]
-    except (FileNotFoundError, CheckpointError) as error:
+    except CLIError as error:
         print(f"soup.py: {error}", file=sys.stderr)
         return 2
     first_params, first_config, _ = loaded[0]
