@@ -413,3 +413,57 @@ def test_bfloat16_kernels_agree_on_the_shipped_model(shipped):
     fused = _acc(params, x, a, config=dataclasses.replace(bf16, kernels="fused"), capacity=cap)
     assert plain.dtype == fused.dtype == jnp.float32
     assert 0 < float(jnp.max(jnp.abs(fused - plain))) <= float(jnp.max(jnp.abs(plain - ref)))
+
+
+GROWN = dataclasses.replace(TINY, hidden_size=24, message_passing_steps=4)
+
+
+@pytest.mark.parametrize("target", [GROWN, dataclasses.replace(TINY, message_passing_steps=3), TINY])
+def test_grown_network_computes_the_same_function(params, inputs, target):
+    from dispgns.model import grow_network
+
+    x, a = inputs
+    grown = {**params, "network": grow_network(jax.random.key(1), params["network"], TINY, target)}
+    assert count_parameters(grown["network"]) >= count_parameters(params["network"])
+    expected = _acc(params, x, a)
+    np.testing.assert_allclose(_acc(grown, x, a, config=target), expected, rtol=1e-5, atol=1e-6)
+    eager = acceleration(grown, x, a, model_config=target)
+    np.testing.assert_allclose(eager, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_grown_network_learns_through_every_new_weight(params, inputs):
+    # Zero output weights and zero LayerNorm scales would be dead if nothing upstream of them got gradient:
+    # after two plain gradient steps every new leaf (but the last block's edge update, which no output sees
+    # in any network) has moved.
+    from dispgns.model import grow_network
+
+    x, a = inputs
+    network = grow_network(jax.random.key(1), params["network"], TINY, GROWN)
+    fresh = init_params(jax.random.key(2), GROWN)["network"]
+    target = jax.random.normal(jax.random.key(3), (x.shape[1], 2))
+
+    def loss(net):
+        return jnp.sum((_acc({**params, "network": net}, x, a, config=GROWN) - target) ** 2)
+
+    moved = network
+    for _ in range(3):
+        grads = jax.grad(loss)(moved)
+        moved = jax.tree_util.tree_map(lambda p, g: p - 1e-2 * g / (jnp.max(jnp.abs(g)) + 1e-30), moved, grads)
+    changed = jax.tree_util.tree_map(lambda p, q: bool(jnp.any(p != q)), moved, network)
+    flat = {jax.tree_util.keystr(path): v for path, v in jax.tree_util.tree_leaves_with_path(changed)}
+    assert set(flat) == {jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(fresh)}
+    dead = sorted(k for k, v in flat.items() if not v and "'block_3']['edge'" not in k)
+    assert not dead, dead
+    assert loss(moved) < loss(network)
+
+
+def test_grow_network_refuses_to_shrink_or_change_the_latent_size(params):
+    from dispgns.model import grow_network
+
+    for target, message in [
+        (dataclasses.replace(TINY, message_passing_steps=1), "message_passing_steps 2 -> 1"),
+        (dataclasses.replace(TINY, latent_size=32), "latent_size 16 -> 32"),
+        (dataclasses.replace(TINY, hidden_layers=3), "hidden_layers 2 -> 3"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            grow_network(jax.random.key(1), params["network"], TINY, target)

@@ -358,12 +358,42 @@ def test_init_from_trains_on_from_the_model(tiny_dataset, trained, tmp_path):
     assert json.loads((run / "model" / "model.json").read_text())["record"]["init_from"]["model"] == str(trained)
 
 
+def test_init_from_grows_the_network_into_a_larger_one_with_the_same_predictions(tiny_dataset, trained, tmp_path):
+    import jax
+
+    from dispgns.data import load_dataset
+    from dispgns.simulator import fit_capacity, predict_step
+    from dispgns.training.checkpoint import load_params
+
+    run = tmp_path / "grown"
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--init-from", str(trained / "model"),
+                 "--set", "model.message_passing_steps=3", "--set", "model.hidden_size=20",
+                 "--set", "train.learning_rate=1e-30", "--set", "train.min_learning_rate=0",
+                 "--steps", "1", "--no-progress"]) == 0  # fmt: skip
+    config = json.loads((run / "config.json").read_text())
+    assert config["init_from"]["grown"] == {"hidden_size": [16, 20], "message_passing_steps": [2, 3]}
+    assert config["model"]["message_passing_steps"] == 3 and config["model"]["hidden_size"] == 20
+    trajectory = load_dataset(tiny_dataset, ["valid"])[1]["valid"][0]
+    window, radius = jax.numpy.asarray(trajectory.position[:6]), jax.numpy.asarray(trajectory.radius)
+    steps = []
+    for source in (trained / "model", run / "model"):
+        params, model_config, _ = load_params(source)
+        capacity = fit_capacity(window[-1], model_config, margin=0.5)
+        steps.append(predict_step(params, window, radius, model_config=model_config, capacity=capacity).acceleration)
+    assert np.abs(np.asarray(steps[0])).max() > 0
+    np.testing.assert_allclose(steps[1], steps[0], rtol=1e-4, atol=1e-6 * np.abs(np.asarray(steps[0])).max())
+
+
 def test_init_from_refuses_another_network_and_a_changed_start_on_resume(tiny_dataset, trained, tmp_path, capsys):
     run = tmp_path / "fine"
     code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--init-from", str(trained),
                  "--set", "model.latent_size=32", "--steps", "1", "--no-progress"])  # fmt: skip
     assert code == 2 and not run.exists()
     assert "model.latent_size = 32 (the model has 16)" in capsys.readouterr().err
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--init-from", str(trained),
+                 "--set", "model.message_passing_steps=1", "--steps", "1", "--no-progress"])  # fmt: skip
+    assert code == 2 and not run.exists()
+    assert "model.message_passing_steps = 1 (the model has 2)" in capsys.readouterr().err
     assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--steps", "1", *TRAIN[:6],
                  "--no-progress"]) == 0  # fmt: skip
     code = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--resume", "--init-from", str(trained),

@@ -30,6 +30,7 @@ import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import flax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -61,6 +62,7 @@ __all__ = [
     "ModelConfig",
     "apply_network",
     "count_parameters",
+    "grow_network",
     "identity_normalization",
     "init_params",
 ]
@@ -352,6 +354,64 @@ def _init_network(key, config: ModelConfig):
         return (jnp.ones if name == "scale" else jnp.zeros)(leaf.shape, leaf.dtype)
 
     return jax.tree_util.tree_unflatten(treedef, [init(path, leaf) for path, leaf in paths])
+
+
+# Fields a grown network may enlarge; all others must match the source's (the weights fix them).
+GROWABLE_FIELDS = ("hidden_size", "message_passing_steps")
+
+
+def grow_network(key: PRNGKey, network_params: Params, source: ModelConfig, target: ModelConfig) -> Params:
+    """Weights of a larger network that computes exactly what ``network_params`` computes (Net2Net growth).
+
+    ``target`` may have wider hidden layers (``hidden_size``) and more interaction
+    blocks (``message_passing_steps``) than ``source``; every other field that
+    shapes the weights must be equal. The new hidden units get fresh weights
+    (:func:`init_params`'s) on their inputs and zero weights on their outputs; the
+    new blocks, appended after the source's, get fresh weights and a zero
+    LayerNorm scale at the end of their node and edge updates, so each adds zero
+    to its residual. The function is unchanged (up to float rounding of the wider
+    sums), and every new weight receives gradient from the first step on: a
+    fine-tune starts from the source's accuracy with the capacity of the target.
+
+    Args:
+      key: PRNG key of the fresh weights.
+      network_params: ``params["network"]`` of a ``source`` network.
+      source, target: static :class:`ModelConfig`.
+
+    Returns:
+      ``params["network"]`` of a ``target`` network.
+    """
+    fixed = [
+        f.name
+        for f in dataclasses.fields(ModelConfig)
+        if f.name in ("latent_size", "hidden_layers", "input_sequence_length", "dim")
+        and getattr(source, f.name) != getattr(target, f.name)
+    ]
+    shrunk = [f for f in GROWABLE_FIELDS if getattr(target, f) < getattr(source, f)]
+    if fixed or shrunk:
+        raise ValueError(
+            "grow_network can only widen hidden_size and add message_passing_steps: "
+            + "; ".join(f"{f} {getattr(source, f)} -> {getattr(target, f)}" for f in fixed + shrunk)
+        )
+    fresh = flax.core.unfreeze(_init_network(key, target))
+    old = flax.core.unfreeze(network_params)
+
+    def grown(path, leaf):
+        keys = [p.key for p in path]
+        try:
+            value = functools.reduce(lambda tree, k: tree[k], keys, old)
+        except KeyError:  # a new block
+            ends_residual = keys[-3:-1] in (["node_2", "LayerNorm_0"], ["edge", "LayerNorm_0"])
+            return jnp.zeros_like(leaf) if ends_residual and keys[-1] == "scale" else leaf
+        value = jnp.asarray(value, leaf.dtype)
+        if value.shape == leaf.shape:
+            return value
+        if keys[-1] == "kernel":  # (in, out): the old block, zero from new inputs to old outputs
+            rows, cols = value.shape
+            return leaf.at[rows:, :cols].set(0.0).at[:rows, :cols].set(value)
+        return leaf.at[: value.shape[0]].set(value)  # a bias: new units start at zero
+
+    return jax.tree_util.tree_map_with_path(grown, fresh)
 
 
 def apply_network(

@@ -76,8 +76,9 @@ def register(subparsers) -> None:
         help="start a new run from a trained model's parameters and normalisation instead of random weights "
         "(fine-tuning): an exported model directory, a run directory (its exported model, else its latest "
         "checkpoint), or the name of a shipped model (e.g. 'paper'). The network is the model's (--config/--set "
-        "may change training fields and model.keep_inside_box only); the optimiser and the learning-rate "
-        "schedule start afresh",
+        "may change training fields and model.keep_inside_box only), or a larger one computing the same function "
+        "if model.hidden_size or model.message_passing_steps ask for more (dispgns.model.grow_network); the "
+        "optimiser and the learning-rate schedule start afresh",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing run in RUN")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -247,10 +248,17 @@ class _InitialModel(NamedTuple):
 _FINE_TUNE_MODEL_FIELDS = ("keep_inside_box", "symmetrize", "bounds", "kernels", "matmul_dtype")
 
 
-def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _InitialModel:
-    """The parameters, network configuration and normalisation that ``--init-from SOURCE`` starts from."""
+def _initial_model(source: str, explicit: dict[str, dict[str, Any]], requested: Any, seed: int) -> _InitialModel:
+    """The parameters, network configuration and normalisation that ``--init-from SOURCE`` starts from.
+
+    A configuration asking for more hidden units or interaction blocks than the source has grows the source's
+    network into that size (:func:`dispgns.model.grow_network`, fresh weights drawn from ``seed``).
+    ``requested`` is the :class:`~dispgns.model.ModelConfig` resolved from ``explicit`` (its values parsed).
+    """
+    import jax
     import numpy as np
 
+    from dispgns.model import GROWABLE_FIELDS, grow_network
     from dispgns.pretrained import pretrained_path
     from dispgns.training.checkpoint import CheckpointError, load_params
 
@@ -265,16 +273,22 @@ def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _Initial
     except CheckpointError as error:
         raise CLIError(f"--init-from {source}: {error}") from None
     fixed = sorted(set(explicit["model"]) - set(_FINE_TUNE_MODEL_FIELDS))
-    differ = [f for f in fixed if explicit["model"][f] != getattr(model_config, f)]
+    differ = [f for f in fixed if getattr(requested, f) != getattr(model_config, f)]
+    grows = [f for f in differ if f in GROWABLE_FIELDS and getattr(requested, f) > getattr(model_config, f)]
+    differ = [f for f in differ if f not in grows]
     if differ:
         raise CLIError(
             f"--init-from {source}: the model's network is fixed by its parameters, but the configuration sets "
             + "; ".join(
-                f"model.{f} = {explicit['model'][f]!r} (the model has {getattr(model_config, f)!r})" for f in differ
+                f"model.{f} = {getattr(requested, f)!r} (the model has {getattr(model_config, f)!r})" for f in differ
             )
-            + f"; only {', '.join('model.' + f for f in _FINE_TUNE_MODEL_FIELDS)} may change"
+            + f"; only {', '.join('model.' + f for f in _FINE_TUNE_MODEL_FIELDS)} may change, and "
+            + " and ".join(f"model.{f}" for f in GROWABLE_FIELDS)
+            + " may grow (never shrink)"
         )
     changes = {f: v for f, v in explicit["model"].items() if f in _FINE_TUNE_MODEL_FIELDS}
+    changes.update({f: getattr(requested, f) for f in grows})
+    source_config = model_config
     # Trained as the network alone: the position guard and the floor-symmetry average are rollout-time choices of
     # the export (a shipped model may have them on), unless the configuration asks for them.
     changes.setdefault("keep_inside_box", False)
@@ -285,6 +299,10 @@ def _initial_model(source: str, explicit: dict[str, dict[str, Any]]) -> _Initial
         raise CLIError(f"--init-from {source}: invalid model config: {error}") from None
     normalization = {k: np.asarray(v, np.float32) for k, v in params["normalization"].items()}
     record = {"model": source, "source": info.get("source", str(path)), "steps": info.get("record", {}).get("steps")}
+    if grows:
+        network = grow_network(jax.random.key(seed), params["network"], source_config, model_config)
+        params = {"network": network, "normalization": params["normalization"]}
+        record["grown"] = {f: [getattr(source_config, f), getattr(model_config, f)] for f in grows}
     return _InitialModel(params, model_config, normalization, record)
 
 
@@ -427,7 +445,7 @@ def run(args: argparse.Namespace) -> int:
     model_config, train_config, explicit = resolve_configs(args, metadata.connectivity_radius)
     initial = None
     if args.init_from and not args.resume:
-        initial = _initial_model(args.init_from, explicit)
+        initial = _initial_model(args.init_from, explicit, model_config, train_config.seed)
         model_config = initial.model_config
     if args.resume:
         if not (run_dir / CONFIG_FILE).is_file():
