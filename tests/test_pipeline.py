@@ -403,3 +403,18 @@ def test_init_from_refuses_another_network_and_a_changed_start_on_resume(tiny_da
     code = main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "x"), "--init-from", "no-such-model",
                  "--no-progress"])  # fmt: skip
     assert code == 2 and "no shipped model 'no-such-model'" in capsys.readouterr().err
+
+
+def test_time_estimate_ignores_the_recompiling_steps():
+    # A run whose graph budget grows twice in its first steps: each growth recompiles (tens of seconds), the
+    # steady state is 0.25 s/step. The estimate is the steady state's, not the mean's 3.0 s/step.
+    from dispgns.cli.train import _StepTimer
+
+    times = iter(np.cumsum([0.0, 0.25, 30.0, 0.25, 0.25, 25.0] + [0.25] * 20))
+    written = []
+    timer = _StepTimer(0, 1000, written.append, clock=lambda: float(next(times)))
+    step = timer.wrap(lambda step, metrics: None)
+    for k in range(1, 30):
+        step(k, {})
+    assert len(written) == 1
+    assert written[0].startswith("measured 0.25 s/step: the remaining 979 steps take about 4 min"), written

@@ -15,6 +15,10 @@ spread of the draws). Positions are perturbed, velocities are not; a perturbed c
 contact positions.
 
     python experiments/accuracy/error_ladder.py --data datasets/paper --out experiments/accuracy/error_ladder
+    python experiments/accuracy/error_ladder.py --data datasets/paper3d --out experiments/three_d/error_ladder \
+        --deltas 1e-4 3e-4 1e-3 3e-3
+
+(any dimension: the 3-D one, whose model errs more per frame, with larger deltas)
 
 writes ``error_ladder.json`` (per split and delta: mean and std over trajectories of the full-rollout
 MSE and of the MSE at horizons 10, 50 and 100) and ``error_ladder.png``.
@@ -102,15 +106,19 @@ def main():
     parser.add_argument("--splits", nargs="+", default=["test", "test_unseen"])
     parser.add_argument("--input-frames", type=int, default=6, help="C: frames given to a model")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--deltas", type=float, nargs="+", default=list(DELTAS), help="per-frame errors (L); 0, the floor, is added"
+    )
     args = parser.parse_args()
+    deltas = sorted(set([0.0, *args.deltas]))
 
     metadata, splits = load_dataset(args.data, args.splits)
     config, scale = metadata.physics_config, metadata.length_scale
-    result = {"data": Path(args.data).name, "deltas_L": list(DELTAS), "input_frames": args.input_frames, "splits": {}}
+    result = {"data": Path(args.data).name, "deltas_L": deltas, "input_frames": args.input_frames, "splits": {}}
     for split, trajectories in splits.items():
         n_frames = trajectories[0].n_frames
         rows = []
-        for delta in DELTAS:
+        for delta in deltas:
             start = time.perf_counter()
             runs = perturbed_rollouts(
                 trajectories,

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import os
 import shutil
+import statistics
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -706,31 +707,39 @@ def _plan(args, explicit, params, steps: int) -> str:
 
 
 class _StepTimer:
-    """Prints, once, the time per step measured after compilation and the expected time to the last step."""
+    """Prints, once, the time per step measured after compilation and the expected time to the last step.
+
+    The median step time, not the mean: the first steps of a run recompile whenever a batch outgrows the graph
+    budget (grown outside ``jit``, see :mod:`dispgns.capacity`), and a few of those would otherwise turn 0.2
+    s/step into an estimate of days.
+    """
 
     # Steps timed after the first (compiling) one; and at most this many seconds of timing.
-    STEPS, SECONDS = 20, 30.0
+    STEPS, SECONDS = 20, 120.0
 
-    def __init__(self, first: int, last: int, write):
+    def __init__(self, first: int, last: int, write, clock=None):
+        import time
+
         self.first, self.last, self.write = first, last, write
-        self.start = None
+        self.clock = time.perf_counter if clock is None else clock
+        self.start = self.previous = None
+        self.durations: list[float] = []
         self.done = write is None
 
     def wrap(self, on_step):
-        import time
-
         def step(step, metrics):
             on_step(step, metrics)
             if self.done:
                 return
-            now = time.perf_counter()
+            now = self.clock()
             if self.start is None:
-                self.start = (step, now)  # after the first step: compilation is behind us
+                self.start = self.previous = now  # after the first step: its compilation is behind us
                 return
-            taken, elapsed = step - self.start[0], now - self.start[1]
-            if taken >= self.STEPS or elapsed >= self.SECONDS or step >= self.last:
+            self.durations.append(now - self.previous)
+            self.previous = now
+            if len(self.durations) >= self.STEPS or now - self.start >= self.SECONDS or step >= self.last:
                 self.done = True
-                per_step = elapsed / max(1, taken)
+                per_step = statistics.median(self.durations)
                 self.write(
                     f"measured {per_step:.3g} s/step: the remaining {self.last - step:,} steps take about "
                     f"{_duration(per_step * (self.last - step))} on this machine"
