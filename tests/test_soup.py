@@ -85,3 +85,38 @@ def test_a_missing_model_or_best_checkpoint_is_a_one_line_error(soup, tmp_path, 
     assert soup.main([str(tmp_path / "s"), a, a + ":best"]) == 2  # an exported model has no best checkpoint
     assert capsys.readouterr().err.startswith("soup.py: ")
     assert not (tmp_path / "s").exists()
+
+
+@pytest.fixture(scope="module")
+def ensemble():
+    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / "ensemble.py"
+    spec = importlib.util.spec_from_file_location("ensemble", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(ensemble, tmp_path):
+    from dispgns.cli import CLIError
+    from dispgns.model import apply_network
+
+    config = ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1)
+    a, b = _export(tmp_path / "a", 0, config), _export(tmp_path / "b", 1, config)
+    params, got_config, info = ensemble.ensemble([a, b])
+    assert got_config == config and info["ensemble"] == [a, b]
+    rng = np.random.default_rng(0)
+    nodes = rng.normal(size=(5, config.node_feature_size)).astype(np.float32)
+    edges = rng.normal(size=(6, config.edge_feature_size)).astype(np.float32)
+    senders, receivers = np.array([1, 2, 0, 3, 4, 2]), np.array([0, 0, 1, 2, 3, 4])
+    mean = ensemble.mean_of_members(apply_network)(params["network"], nodes, edges, senders, receivers,
+                                                   model_config=config)  # fmt: skip
+    outputs = [apply_network(load_model(m)[0]["network"], nodes, edges, senders, receivers, model_config=config)
+               for m in (a, b)]  # fmt: skip
+    assert not np.allclose(outputs[0], outputs[1])
+    np.testing.assert_allclose(mean, (outputs[0] + outputs[1]) / 2, rtol=1e-5, atol=1e-6)
+    other = _export(tmp_path / "other", 2, config, {**NORM, "velocity_std": np.full(2, 0.07)})
+    with pytest.raises(CLIError, match="normalisation differs"):
+        ensemble.ensemble([a, other])
+    deeper = _export(tmp_path / "deeper", 3, dataclasses.replace(config, message_passing_steps=2))
+    with pytest.raises(CLIError, match="model configuration differs"):
+        ensemble.ensemble([a, deeper])
