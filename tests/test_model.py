@@ -418,23 +418,43 @@ def test_bfloat16_kernels_agree_on_the_shipped_model(shipped):
 GROWN = dataclasses.replace(TINY, hidden_size=24, message_passing_steps=4)
 
 
-@pytest.mark.parametrize("target", [GROWN, dataclasses.replace(TINY, message_passing_steps=3), TINY])
-def test_grown_network_computes_the_same_function(params, inputs, target):
+def _perturbed(network, seed):
+    """Every leaf moved by a random amount: biases and LayerNorm scales no longer what a fresh init gives."""
+    leaves, treedef = jax.tree_util.tree_flatten(network)
+    keys = jax.random.split(jax.random.key(seed), len(leaves))
+    return jax.tree_util.tree_unflatten(
+        treedef, [x + 0.1 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)]
+    )
+
+
+@pytest.mark.parametrize(
+    "source, grown",
+    [
+        (TINY, GROWN),
+        (TINY, dataclasses.replace(TINY, message_passing_steps=3)),
+        (TINY, TINY),
+        (dataclasses.replace(TINY, kernels="fused"), dataclasses.replace(GROWN, kernels="fused")),
+        (dataclasses.replace(TINY, hidden_layers=1), dataclasses.replace(GROWN, hidden_layers=1)),
+        (dataclasses.replace(TINY, hidden_layers=0), dataclasses.replace(GROWN, hidden_layers=0)),
+    ],
+)
+def test_grown_network_computes_the_same_function(params, inputs, source, grown):
     from dispgns.model import grow_network
 
     x, a = inputs
-    grown = {**params, "network": grow_network(jax.random.key(1), params["network"], TINY, target)}
-    assert count_parameters(grown["network"]) >= count_parameters(params["network"])
-    expected = _acc(params, x, a)
-    np.testing.assert_allclose(_acc(grown, x, a, config=target), expected, rtol=1e-5, atol=1e-6)
-    eager = acceleration(grown, x, a, model_config=target)
+    start = {**params, "network": _perturbed(init_params(jax.random.key(4), source)["network"], 5)}
+    bigger = {**params, "network": grow_network(jax.random.key(1), start["network"], source, grown)}
+    assert count_parameters(bigger["network"]) >= count_parameters(start["network"])
+    expected = _acc(start, x, a, config=source)
+    np.testing.assert_allclose(_acc(bigger, x, a, config=grown), expected, rtol=1e-5, atol=1e-6)
+    eager = acceleration(bigger, x, a, model_config=grown)
     np.testing.assert_allclose(eager, expected, rtol=1e-5, atol=1e-6)
 
 
 def test_grown_network_learns_through_every_new_weight(params, inputs):
     # Zero output weights and zero LayerNorm scales would be dead if nothing upstream of them got gradient:
-    # after two plain gradient steps every new leaf (but the last block's edge update, which no output sees
-    # in any network) has moved.
+    # after three plain gradient steps every new leaf (but the last block's edge update, which no output sees
+    # in any network) has moved; three, as the weights behind a zero start learning one step after it.
     from dispgns.model import grow_network
 
     x, a = inputs
@@ -464,6 +484,7 @@ def test_grow_network_refuses_to_shrink_or_change_the_latent_size(params):
         (dataclasses.replace(TINY, message_passing_steps=1), "message_passing_steps 2 -> 1"),
         (dataclasses.replace(TINY, latent_size=32), "latent_size 16 -> 32"),
         (dataclasses.replace(TINY, hidden_layers=3), "hidden_layers 2 -> 3"),
+        (dataclasses.replace(TINY, activation="gelu"), "activation relu -> gelu"),
     ]:
         with pytest.raises(ValueError, match=message):
             grow_network(jax.random.key(1), params["network"], TINY, target)

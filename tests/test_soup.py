@@ -19,13 +19,17 @@ NORM = {
 }
 
 
-@pytest.fixture(scope="module")
-def soup():
-    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / "soup.py"
-    spec = importlib.util.spec_from_file_location("soup", path)
+def _experiment(name):
+    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def soup():
+    return _experiment("soup")
 
 
 def _export(directory, seed, config, norm=NORM):
@@ -89,11 +93,7 @@ def test_a_missing_model_or_best_checkpoint_is_a_one_line_error(soup, tmp_path, 
 
 @pytest.fixture(scope="module")
 def ensemble():
-    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / "ensemble.py"
-    spec = importlib.util.spec_from_file_location("ensemble", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _experiment("ensemble")
 
 
 def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(ensemble, tmp_path):
@@ -103,7 +103,7 @@ def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(en
     config = ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1)
     a, b = _export(tmp_path / "a", 0, config), _export(tmp_path / "b", 1, config)
     params, got_config, info = ensemble.ensemble([a, b])
-    assert got_config == config and info["ensemble"] == [a, b]
+    assert got_config == config and info["ensemble"] == [a, b] and info["source"] == f"ensemble of {a} + {b}"
     rng = np.random.default_rng(0)
     nodes = rng.normal(size=(5, config.node_feature_size)).astype(np.float32)
     edges = rng.normal(size=(6, config.edge_feature_size)).astype(np.float32)
@@ -120,3 +120,26 @@ def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(en
     deeper = _export(tmp_path / "deeper", 3, dataclasses.replace(config, message_passing_steps=2))
     with pytest.raises(CLIError, match="model configuration differs"):
         ensemble.ensemble([a, deeper])
+
+
+def test_ensemble_of_one_model_twice_evaluates_as_that_model_with_evaluates_flags(
+    ensemble, tiny_dataset, tiny_model_config, tmp_path, monkeypatch
+):
+    import json
+
+    import dispgns.cli._common as cli_common
+    import dispgns.simulator as simulator
+    from dispgns.cli import main
+
+    # What main_ensemble replaces for its process is put back after this test.
+    monkeypatch.setattr(simulator, "apply_network", simulator.apply_network)
+    monkeypatch.setattr(cli_common, "_load", cli_common._load)
+    model = _export(tmp_path / "m", 0, tiny_model_config)
+    args = ["--data", str(tiny_dataset), "--splits", "valid", "--no-chaos", "--no-statistics", "--symmetrize"]
+    assert main(["evaluate", "--model", model, *args, "--out", str(tmp_path / "one")]) == 0
+    assert ensemble.main_ensemble([f"{model},{model}", *args, "--out", str(tmp_path / "two")]) == 0
+    one, two = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("one", "two"))
+    assert two["model"]["source"] == f"ensemble of {model} + {model}"
+    # --symmetrize reached the ensemble (without it the rollouts differ: the tiny model is not mirror-symmetric).
+    mse = [m["splits"]["valid"]["summary"]["mse"]["mean"] for m in (one, two)]
+    np.testing.assert_allclose(mse[1], mse[0], rtol=1e-4)

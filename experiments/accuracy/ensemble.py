@@ -2,49 +2,48 @@
 
 The mirror average (track E) is a two-member ensemble of one network and cut the validation rollout MSE by 13 %;
 this checks whether members with other weights add to it. Each member runs with the first member's configuration
-(as shipped: mirror average, box guard), on one normalisation (checked: the members must come from one
-fine-tuning lineage), and the mean of their outputs replaces the network's. `dispgns evaluate` does the rest; its
-arguments follow the members:
+(as shipped: mirror average, box guard; `--symmetrize`/`--keep-inside-box` change it as for one model), on one
+normalisation (checked: the members must come from one fine-tuning lineage), and the mean of their outputs replaces
+the network's. `dispgns evaluate` does the rest; its arguments follow the members:
 
     python experiments/accuracy/ensemble.py sedimentation-2d,experiments/accuracy/pushforward3_run:best \\
         --data datasets/acc400 --splits valid --no-chaos --no-statistics --out runs/ensemble-valid
 
-A member is read as ``dispgns evaluate --model`` reads it (``RUN:best`` = ``--model RUN --best``). An experiment,
-not a feature: the mean is put in place of `dispgns.simulator.apply_network` for this process only.
+A member is read as ``dispgns evaluate --model`` reads it (``RUN:best`` = ``--model RUN --best``); the outputs name
+the ensemble as their model. An experiment, not a feature: the mean is put in place of
+`dispgns.simulator.apply_network` for this process only.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-import dispgns.cli.evaluate as evaluate_cli
+import dispgns.cli._common as cli_common
 import dispgns.simulator as simulator
 from dispgns.cli import CLIError, main
 
-sys.path.insert(0, __file__.rsplit("/", 1)[0])
-import soup  # noqa: E402  (the same member reader and configuration check as the weight average)
+
+def _soup():
+    """The weight average's module (its member reader and lineage check), loaded from beside this file."""
+    spec = importlib.util.spec_from_file_location("soup", Path(__file__).with_name("soup.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def ensemble(members: list[str]):
     """``(params, model_config, info)`` whose ``params["network"]`` stacks the members' networks on axis 0."""
-    loaded = [soup.load(member) for member in members]
+    loaded = _soup().load_lineage(members)
     first, config, info = loaded[0]
-    for member, (params, member_config, _) in zip(members[1:], loaded[1:], strict=True):
-        if soup._network_fields(member_config) != soup._network_fields(config):
-            raise CLIError(f"{member}: its model configuration differs from {members[0]}'s")
-        gaps = jax.tree_util.tree_map(
-            lambda a, b: float(np.max(np.abs(np.asarray(a) - np.asarray(b)))),
-            params["normalization"],
-            first["normalization"],
-        )
-        if max(jax.tree_util.tree_leaves(gaps)) > 1e-6:
-            raise CLIError(f"{member}: its normalisation differs from {members[0]}'s (another dataset)")
     stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *[p["network"] for p, _, _ in loaded])
-    return {"network": stacked, "normalization": first["normalization"]}, config, dict(info, ensemble=members)
+    sources = [member_info.get("source", member) for member, (_, _, member_info) in zip(members, loaded, strict=True)]
+    info = dict(info, source="ensemble of " + " + ".join(sources), ensemble=sources)
+    return {"network": stacked, "normalization": first["normalization"]}, config, info
 
 
 def mean_of_members(single):
@@ -66,7 +65,8 @@ def main_ensemble(argv: list[str]) -> int:
         print(f"ensemble.py: {error}", file=sys.stderr)
         return 2
     simulator.apply_network = mean_of_members(simulator.apply_network)
-    evaluate_cli.load_model_argument = lambda args, dim=2: (params, config, info)
+    # The model reader only: `evaluate`'s --symmetrize, --keep-inside-box and speed settings still apply.
+    cli_common._load = lambda args, dim=2: (params, config, info)
     return main(["evaluate", *argv[1:]])
 
 

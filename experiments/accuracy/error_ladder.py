@@ -16,7 +16,7 @@ contact positions.
 
     python experiments/accuracy/error_ladder.py --data datasets/paper --out experiments/accuracy/error_ladder
     python experiments/accuracy/error_ladder.py --data datasets/paper3d --out experiments/three_d/error_ladder \
-        --deltas 1e-4 3e-4 1e-3 3e-3
+        --deltas 1e-5 1e-4 3e-4 1e-3 3e-3
 
 (any dimension: the 3-D one, whose model errs more per frame, with larger deltas)
 

@@ -35,29 +35,34 @@ def _network_fields(config) -> dict:
     return {k: v for k, v in dataclasses.asdict(config).items() if k not in UNCOMPARED}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("out", help="the model directory to write")
-    parser.add_argument("sources", nargs="+", help="models to average (see the module docstring)")
-    args = parser.parse_args(argv)
-    try:
-        loaded = [load(source) for source in args.sources]
-    except CLIError as error:
-        print(f"soup.py: {error}", file=sys.stderr)
-        return 2
+def load_lineage(sources: list[str]) -> list:
+    """``[(params, model_config, info)]`` of ``sources``; :class:`CLIError` unless one network on one dataset."""
+    loaded = [load(source) for source in sources]
     first_params, first_config, _ = loaded[0]
-    for source, (params, config, _) in zip(args.sources[1:], loaded[1:], strict=True):
+    for source, (params, config, _) in zip(sources[1:], loaded[1:], strict=True):
         if _network_fields(config) != _network_fields(first_config):
-            print(f"{source}: its model configuration differs from {args.sources[0]}'s", file=sys.stderr)
-            return 2
+            raise CLIError(f"{source}: its model configuration differs from {sources[0]}'s")
         gaps = jax.tree_util.tree_map(
             lambda a, b: float(np.max(np.abs(np.asarray(a) - np.asarray(b)))),
             params["normalization"],
             first_params["normalization"],
         )
         if max(jax.tree_util.tree_leaves(gaps)) > 1e-6:
-            print(f"{source}: its normalisation differs from {args.sources[0]}'s (another dataset)", file=sys.stderr)
-            return 2
+            raise CLIError(f"{source}: its normalisation differs from {sources[0]}'s (another dataset)")
+    return loaded
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("out", help="the model directory to write")
+    parser.add_argument("sources", nargs="+", help="models to average (see the module docstring)")
+    args = parser.parse_args(argv)
+    try:
+        loaded = load_lineage(args.sources)
+    except CLIError as error:
+        print(f"soup.py: {error}", file=sys.stderr)
+        return 2
+    first_config = loaded[0][1]
     soup = jax.tree_util.tree_map(lambda *leaves: sum(leaves) / len(leaves), *[params for params, _, _ in loaded])
     sources = [info.get("source", source) for source, (_, _, info) in zip(args.sources, loaded, strict=True)]
     export_model(args.out, soup, first_config, {"soup_of": sources})

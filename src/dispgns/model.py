@@ -61,6 +61,7 @@ __all__ = [
     "InteractionBlock",
     "ModelConfig",
     "apply_network",
+    "GROWABLE_FIELDS",
     "count_parameters",
     "grow_network",
     "identity_normalization",
@@ -356,22 +357,26 @@ def _init_network(key, config: ModelConfig):
     return jax.tree_util.tree_unflatten(treedef, [init(path, leaf) for path, leaf in paths])
 
 
-# Fields a grown network may enlarge; all others must match the source's (the weights fix them).
+# Fields a grown network may enlarge; those after them must match the source's (they fix the weights' shapes or
+# what the network computes with them; the graph and feature settings are not the network's).
 GROWABLE_FIELDS = ("hidden_size", "message_passing_steps")
+_FIXED_BY_WEIGHTS = ("latent_size", "hidden_layers", "input_sequence_length", "dim", "activation", "layer_norm_epsilon")
 
 
 def grow_network(key: PRNGKey, network_params: Params, source: ModelConfig, target: ModelConfig) -> Params:
     """Weights of a larger network that computes exactly what ``network_params`` computes (Net2Net growth).
 
     ``target`` may have wider hidden layers (``hidden_size``) and more interaction
-    blocks (``message_passing_steps``) than ``source``; every other field that
-    shapes the weights must be equal. The new hidden units get fresh weights
-    (:func:`init_params`'s) on their inputs and zero weights on their outputs; the
-    new blocks, appended after the source's, get fresh weights and a zero
-    LayerNorm scale at the end of their node and edge updates, so each adds zero
-    to its residual. The function is unchanged (up to float rounding of the wider
-    sums), and every new weight receives gradient from the first step on: a
-    fine-tune starts from the source's accuracy with the capacity of the target.
+    blocks (``message_passing_steps``) than ``source``; the fields that shape the
+    weights or the network's function (latent size, hidden layers, ``C``, ``D``,
+    activation, LayerNorm epsilon) must be equal. The new hidden units get fresh
+    weights (:func:`init_params`'s) on their inputs and zero weights on their
+    outputs; the new blocks, appended after the source's, get fresh weights and a
+    zero LayerNorm scale at the end of their node and edge updates, so each adds
+    zero to its residual. :func:`apply_network` is unchanged (up to float rounding
+    of the wider sums), and every new weight learns (the zero weights get gradient
+    at once, the weights behind them once those have moved): a fine-tune starts
+    from the source's accuracy with the capacity of the target.
 
     Args:
       key: PRNG key of the fresh weights.
@@ -381,12 +386,7 @@ def grow_network(key: PRNGKey, network_params: Params, source: ModelConfig, targ
     Returns:
       ``params["network"]`` of a ``target`` network.
     """
-    fixed = [
-        f.name
-        for f in dataclasses.fields(ModelConfig)
-        if f.name in ("latent_size", "hidden_layers", "input_sequence_length", "dim")
-        and getattr(source, f.name) != getattr(target, f.name)
-    ]
+    fixed = [f for f in _FIXED_BY_WEIGHTS if getattr(source, f) != getattr(target, f)]
     shrunk = [f for f in GROWABLE_FIELDS if getattr(target, f) < getattr(source, f)]
     if fixed or shrunk:
         raise ValueError(
@@ -398,12 +398,10 @@ def grow_network(key: PRNGKey, network_params: Params, source: ModelConfig, targ
 
     def grown(path, leaf):
         keys = [p.key for p in path]
-        try:
-            value = functools.reduce(lambda tree, k: tree[k], keys, old)
-        except KeyError:  # a new block
+        if keys[0] not in old:  # a new block (a leaf missing elsewhere is a KeyError: not this network's weights)
             ends_residual = keys[-3:-1] in (["node_2", "LayerNorm_0"], ["edge", "LayerNorm_0"])
             return jnp.zeros_like(leaf) if ends_residual and keys[-1] == "scale" else leaf
-        value = jnp.asarray(value, leaf.dtype)
+        value = jnp.asarray(functools.reduce(lambda tree, k: tree[k], keys, old), leaf.dtype)
         if value.shape == leaf.shape:
             return value
         if keys[-1] == "kernel":  # (in, out): the old block, zero from new inputs to old outputs
