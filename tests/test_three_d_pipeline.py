@@ -210,12 +210,13 @@ def test_symmetrize_option_turns_the_models_setting_on_and_off_and_defaults_to_i
 
 def test_fine_tuning_a_shipped_model_trains_the_network_alone_unless_the_config_asks():
     from dispgns.cli.train import _initial_model
+    from dispgns.model import ModelConfig
     from dispgns.pretrained import load_pretrained
 
     assert load_pretrained("sedimentation-2d")[1].symmetrize  # shipped with the mirror average
-    start = _initial_model("sedimentation-2d", {"model": {}, "train": {}})
+    start = _initial_model("sedimentation-2d", {"model": {}, "train": {}}, ModelConfig(), seed=0)
     assert not start.model_config.symmetrize and not start.model_config.keep_inside_box
-    asked = _initial_model("sedimentation-2d", {"model": {"symmetrize": True}, "train": {}})
+    asked = _initial_model("sedimentation-2d", {"model": {"symmetrize": True}, "train": {}}, ModelConfig(), seed=0)
     assert asked.model_config.symmetrize
 
 
