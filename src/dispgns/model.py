@@ -32,6 +32,7 @@ from typing import Any
 
 import flax
 import flax.linen as nn
+import flax.traverse_util
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -357,8 +358,8 @@ def _init_network(key, config: ModelConfig):
     return jax.tree_util.tree_unflatten(treedef, [init(path, leaf) for path, leaf in paths])
 
 
-# Fields a grown network may enlarge; those after them must match the source's (they fix the weights' shapes or
-# what the network computes with them; the graph and feature settings are not the network's).
+# Fields a grown network may enlarge, and fields it must share with its source (they fix the weights' shapes or what
+# the network computes with them; the graph and feature settings are not the network's).
 GROWABLE_FIELDS = ("hidden_size", "message_passing_steps")
 _FIXED_BY_WEIGHTS = ("latent_size", "hidden_layers", "input_sequence_length", "dim", "activation", "layer_norm_epsilon")
 
@@ -393,15 +394,15 @@ def grow_network(key: PRNGKey, network_params: Params, source: ModelConfig, targ
             "grow_network can only widen hidden_size and add message_passing_steps: "
             + "; ".join(f"{f} {getattr(source, f)} -> {getattr(target, f)}" for f in fixed + shrunk)
         )
-    fresh = flax.core.unfreeze(_init_network(key, target))
-    old = flax.core.unfreeze(network_params)
+    old = flax.traverse_util.flatten_dict(flax.core.unfreeze(network_params))
+    blocks = {keys[0] for keys in old}
 
     def grown(path, leaf):
-        keys = [p.key for p in path]
-        if keys[0] not in old:  # a new block (a leaf missing elsewhere is a KeyError: not this network's weights)
-            ends_residual = keys[-3:-1] in (["node_2", "LayerNorm_0"], ["edge", "LayerNorm_0"])
+        keys = tuple(p.key for p in path)
+        if keys[0] not in blocks:  # a new block (a leaf missing elsewhere is a KeyError: not this network's weights)
+            ends_residual = keys[-3:-1] in (("node_2", "LayerNorm_0"), ("edge", "LayerNorm_0"))
             return jnp.zeros_like(leaf) if ends_residual and keys[-1] == "scale" else leaf
-        value = jnp.asarray(functools.reduce(lambda tree, k: tree[k], keys, old), leaf.dtype)
+        value = jnp.asarray(old[keys], leaf.dtype)
         if value.shape == leaf.shape:
             return value
         if keys[-1] == "kernel":  # (in, out): the old block, zero from new inputs to old outputs
@@ -409,7 +410,7 @@ def grow_network(key: PRNGKey, network_params: Params, source: ModelConfig, targ
             return leaf.at[rows:, :cols].set(0.0).at[:rows, :cols].set(value)
         return leaf.at[: value.shape[0]].set(value)  # a bias: new units start at zero
 
-    return jax.tree_util.tree_map_with_path(grown, fresh)
+    return jax.tree_util.tree_map_with_path(grown, flax.core.unfreeze(_init_network(key, target)))
 
 
 def apply_network(

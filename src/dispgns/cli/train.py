@@ -77,7 +77,8 @@ def register(subparsers) -> None:
         help="start a new run from a trained model's parameters and normalisation instead of random weights "
         "(fine-tuning): an exported model directory, a run directory (its exported model, else its latest "
         "checkpoint), or the name of a shipped model (e.g. 'paper'). The network is the model's (--config/--set "
-        "may change training fields and model.keep_inside_box only), or a larger one computing the same function "
+        "may change training fields and the model's keep_inside_box, symmetrize, bounds, kernels and matmul_dtype "
+        "only), or a larger one computing the same function "
         "if model.hidden_size or model.message_passing_steps ask for more (dispgns.model.grow_network); the "
         "optimiser and the learning-rate schedule start afresh",
     )
