@@ -6,9 +6,15 @@ Every run has the same network, training configuration (``experiments/accuracy/c
 validation set (the 12 valid trajectories of ``datasets/acc400``); only the number of training trajectories
 differs. The 400-trajectory run is track A (``experiments/accuracy/run``); the 16- and 64-trajectory runs
 trained on the first 16 / 64 training trajectories of the same files (``subset.py``) and their logs and
-configs are in ``experiments/accuracy/scaling/<K>/``. Reads the validation records (one-step loss without
-noise and the full 494-frame rollout MSE, mean over the 12 trajectories) and writes ``data_scaling.json``
-and ``data_scaling.png``.
+configs are in ``experiments/accuracy/scaling/<K>/``. The dataset was regenerated in session 6 and is not
+bit-identical to the first one (float32 rounding differs between machines, and the trajectories are chaotic):
+track A's first 25,056 steps and the 64-trajectory run used the first files, the 16-trajectory run to 50,000
+steps (``scaling/16``) and track A from step 25,056 on the regenerated ones; ``scaling/16-session4`` is the
+first 16-trajectory run (20,000 steps, first files), drawn as a learning curve but left out of the
+data-scaling panel. Reads the validation records (one-step loss without noise and the full 494-frame rollout
+MSE, mean over the 12 trajectories) and writes ``data_scaling.json`` and ``data_scaling.png``: the learning
+curve of each run, and the rollout MSE against the number of training trajectories at every step where more
+than one size was validated.
 """
 
 from __future__ import annotations
@@ -19,8 +25,15 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-RUNS = {16: HERE / "scaling" / "16", 64: HERE / "scaling" / "64", 400: HERE / "run"}
-STEPS = (5000, 10000, 15000, 20000)
+# (label, training trajectories, run directory, on the data-scaling panel?)
+RUNS = (
+    ("16 trajectories", 16, HERE / "scaling" / "16", True),
+    ("16 trajectories, first files (session 4)", 16, HERE / "scaling" / "16-session4", False),
+    ("64 trajectories", 64, HERE / "scaling" / "64", True),
+    ("400 trajectories (track A)", 400, HERE / "run", True),
+)
+COUNTS = sorted({count for _, count, _, _ in RUNS})
+STEPS = tuple(range(5000, 60001, 5000))
 
 
 def validations(run: Path) -> dict[int, dict]:
@@ -43,44 +56,62 @@ def main(argv=None) -> int:
     from dispgns.render import save_figure
 
     table = []
-    for count, run in RUNS.items():
+    for label, count, run, on_scaling_panel in RUNS:
         found = validations(run)
         for step in STEPS:
             if step in found:
                 record = found[step]
                 table.append(
                     {
+                        "run": label,
                         "train_trajectories": count,
+                        "on_scaling_panel": on_scaling_panel,
                         "step": step,
                         "valid_one_step_loss": record["valid_one_step_loss"],
                         "valid_rollout_mse": record["valid_rollout_mse"],
                     }
                 )
     out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     write_atomic(out / "data_scaling.json", json.dumps(table, indent=1) + "\n")
 
     from matplotlib.figure import Figure
     from matplotlib.ticker import NullLocator
 
-    fig = Figure(figsize=(10, 4), layout="constrained")
-    axes = fig.subplots(1, 2)
+    fig = Figure(figsize=(15, 4), layout="constrained")
+    axes = fig.subplots(1, 3)
+    # Left and middle: the learning curves of each training-set size (not every run validated at every step).
     for ax, key, label in (
         (axes[0], "valid_one_step_loss", "valid one-step loss (no noise, std units)"),
         (axes[1], "valid_rollout_mse", "valid rollout MSE (12 trajectories, 494 frames)"),
     ):
-        for step in STEPS:
-            points = sorted((p["train_trajectories"], p[key]) for p in table if p["step"] == step)
+        for run_label, _, _, on_scaling_panel in RUNS:
+            points = sorted((p["step"], p[key]) for p in table if p["run"] == run_label)
             if points:
-                ax.plot(*zip(*points), "o-", label=f"step {step:,}")
-        ax.set_xscale("log")
+                ax.plot(*zip(*points), "o-" if on_scaling_panel else "o:", label=run_label)
         ax.set_yscale("log")
-        ax.xaxis.set_minor_locator(NullLocator())  # only the three counts are labelled
-        ax.set_xticks(list(RUNS), [str(k) for k in RUNS])
-        ax.set_xlabel("training trajectories")
+        ax.set_xlabel("training step (batch 2)")
         ax.set_ylabel(label)
+    # Right: the data-scaling curve, at every step where at least two sizes were validated.
+    for step in STEPS:
+        points = sorted(
+            (p["train_trajectories"], p["valid_rollout_mse"])
+            for p in table
+            if p["step"] == step and p["on_scaling_panel"]
+        )
+        if len(points) > 1:
+            axes[2].plot(*zip(*points), "s--", label=f"step {step:,}")
+    axes[2].set_xscale("log")
+    axes[2].set_yscale("log")
+    axes[2].xaxis.set_minor_locator(NullLocator())  # only the training-set sizes are labelled
+    axes[2].set_xticks(COUNTS, [str(k) for k in COUNTS])
+    axes[2].set_xlabel("training trajectories")
+    axes[2].set_ylabel("valid rollout MSE (12 trajectories, 494 frames)")
+    for ax in axes[1:]:
+        ax.axhline(9.5e-4, color="grey", linestyle=":", label="for scale: the paper on test (2 M GPU steps)")
+    for ax in axes:
         ax.grid(True, alpha=0.3)
-    axes[1].axhline(9.5e-4, color="grey", linestyle="--", label="for scale: the paper on test (2 M GPU steps)")
-    axes[1].legend()
+        ax.legend(fontsize="small")
     save_figure(fig, out / "data_scaling.png")
     for row in table:
         print(json.dumps(row))
