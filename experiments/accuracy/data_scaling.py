@@ -3,18 +3,19 @@
     python experiments/accuracy/data_scaling.py [--out experiments/accuracy/results]
 
 Every run has the same network, training configuration (``experiments/accuracy/config.yaml``), seed and
-validation set (the 12 valid trajectories of ``datasets/acc400``); only the number of training trajectories
-differs. The 400-trajectory run is track A (``experiments/accuracy/run``); the 16- and 64-trajectory runs
-trained on the first 16 / 64 training trajectories of the same files (``subset.py``) and their logs and
-configs are in ``experiments/accuracy/scaling/<K>/``. The dataset was regenerated in session 6 and is not
-bit-identical to the first one (float32 rounding differs between machines, and the trajectories are chaotic):
-track A's first 25,056 steps and the 64-trajectory run used the first files, the 16-trajectory run to 50,000
-steps (``scaling/16``) and track A from step 25,056 on the regenerated ones; ``scaling/16-session4`` is the
-first 16-trajectory run (20,000 steps, first files), drawn as a learning curve but left out of the
-data-scaling panel. Reads the validation records (one-step loss without noise and the full 494-frame rollout
-MSE, mean over the 12 trajectories) and writes ``data_scaling.json`` and ``data_scaling.png``: the learning
-curve of each run, and the rollout MSE against the number of training trajectories at every step where more
-than one size was validated.
+validation set (the 12 valid trajectories of ``datasets/acc400``, in the files the run used at that step);
+only the number of training trajectories differs. The 400-trajectory run is track A
+(``experiments/accuracy/run``); the 16- and 64-trajectory runs trained on the first 16 / 64 training
+trajectories of the same files (``subset.py``) and their logs and configs are in
+``experiments/accuracy/scaling/<K>/``. The dataset was regenerated in session 6 and is not bit-identical to
+the first one (float32 rounding differs between machines, and the trajectories are chaotic): track A's first
+25,056 steps and the 64-trajectory run used the first files, the 16-trajectory run to 50,000 steps
+(``scaling/16``) and track A from step 25,056 on the regenerated ones; ``scaling/16-session4`` is the first
+16-trajectory run (20,000 steps, first files). Every record is tagged with the files it was validated on, and
+the data-scaling panel only joins points of the same files. Reads the validation records (one-step loss
+without noise and the full 494-frame rollout MSE, mean over the 12 trajectories) and writes
+``data_scaling.json`` and ``data_scaling.png``: the learning curve of each run, and the rollout MSE against
+the number of training trajectories at every step where more than one size was validated.
 """
 
 from __future__ import annotations
@@ -25,12 +26,12 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-# (label, training trajectories, run directory, on the data-scaling panel?)
+# (label, training trajectories, run directory, the last step on the first files: None = all of them)
 RUNS = (
-    ("16 trajectories", 16, HERE / "scaling" / "16", True),
-    ("16 trajectories, first files (session 4)", 16, HERE / "scaling" / "16-session4", False),
-    ("64 trajectories", 64, HERE / "scaling" / "64", True),
-    ("400 trajectories (track A)", 400, HERE / "run", True),
+    ("16 trajectories (regenerated files)", 16, HERE / "scaling" / "16", 0),
+    ("16 trajectories (first files, session 4)", 16, HERE / "scaling" / "16-session4", None),
+    ("64 trajectories (first files)", 64, HERE / "scaling" / "64", None),
+    ("400 trajectories (track A; regenerated files after 25,056)", 400, HERE / "run", 25056),
 )
 COUNTS = sorted({count for _, count, _, _ in RUNS})
 STEPS = tuple(range(5000, 60001, 5000))
@@ -56,7 +57,7 @@ def main(argv=None) -> int:
     from dispgns.render import save_figure
 
     table = []
-    for label, count, run, on_scaling_panel in RUNS:
+    for label, count, run, last_step_on_first_files in RUNS:
         found = validations(run)
         for step in STEPS:
             if step in found:
@@ -65,7 +66,9 @@ def main(argv=None) -> int:
                     {
                         "run": label,
                         "train_trajectories": count,
-                        "on_scaling_panel": on_scaling_panel,
+                        "files": "first"
+                        if last_step_on_first_files is None or step <= last_step_on_first_files
+                        else "regenerated",
                         "step": step,
                         "valid_one_step_loss": record["valid_one_step_loss"],
                         "valid_rollout_mse": record["valid_rollout_mse"],
@@ -78,29 +81,30 @@ def main(argv=None) -> int:
     from matplotlib.figure import Figure
     from matplotlib.ticker import NullLocator
 
-    fig = Figure(figsize=(15, 4), layout="constrained")
+    fig = Figure(figsize=(15, 6), layout="constrained")
     axes = fig.subplots(1, 3)
     # Left and middle: the learning curves of each training-set size (not every run validated at every step).
     for ax, key, label in (
         (axes[0], "valid_one_step_loss", "valid one-step loss (no noise, std units)"),
         (axes[1], "valid_rollout_mse", "valid rollout MSE (12 trajectories, 494 frames)"),
     ):
-        for run_label, _, _, on_scaling_panel in RUNS:
+        for run_label, *_ in RUNS:
             points = sorted((p["step"], p[key]) for p in table if p["run"] == run_label)
             if points:
-                ax.plot(*zip(*points), "o-" if on_scaling_panel else "o:", label=run_label)
+                ax.plot(*zip(*points), "o-", label=run_label)
         ax.set_yscale("log")
         ax.set_xlabel("training step (batch 2)")
         ax.set_ylabel(label)
-    # Right: the data-scaling curve, at every step where at least two sizes were validated.
-    for step in STEPS:
-        points = sorted(
-            (p["train_trajectories"], p["valid_rollout_mse"])
-            for p in table
-            if p["step"] == step and p["on_scaling_panel"]
-        )
-        if len(points) > 1:
-            axes[2].plot(*zip(*points), "s--", label=f"step {step:,}")
+    # Right: the data-scaling curve, at every step where at least two sizes were validated on the same files.
+    for files, style in (("first", "s--"), ("regenerated", "D-")):
+        for step in STEPS:
+            points = sorted(
+                (p["train_trajectories"], p["valid_rollout_mse"])
+                for p in table
+                if p["step"] == step and p["files"] == files
+            )
+            if len(points) > 1:
+                axes[2].plot(*zip(*points), style, label=f"step {step:,}, {files} files")
     axes[2].set_xscale("log")
     axes[2].set_yscale("log")
     axes[2].xaxis.set_minor_locator(NullLocator())  # only the training-set sizes are labelled
@@ -111,7 +115,7 @@ def main(argv=None) -> int:
         ax.axhline(9.5e-4, color="grey", linestyle=":", label="for scale: the paper on test (2 M GPU steps)")
     for ax in axes:
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize="small")
+        ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.17))  # below: keeps the points clear
     save_figure(fig, out / "data_scaling.png")
     for row in table:
         print(json.dumps(row))
