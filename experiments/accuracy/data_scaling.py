@@ -26,7 +26,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-# (label, training trajectories, run directory, the last step on the first files: None = all of them)
+# (label, training trajectories, run directory, the last step on the first files: None = all of them, 0 = none)
 RUNS = (
     ("16 trajectories (regenerated files)", 16, HERE / "scaling" / "16", 0),
     ("16 trajectories (first files, session 4)", 16, HERE / "scaling" / "16-session4", None),
@@ -34,7 +34,6 @@ RUNS = (
     ("400 trajectories (track A; regenerated files after 25,056)", 400, HERE / "run", 25056),
 )
 COUNTS = sorted({count for _, count, _, _ in RUNS})
-STEPS = tuple(range(5000, 60001, 5000))
 
 
 def validations(run: Path) -> dict[int, dict]:
@@ -58,22 +57,19 @@ def main(argv=None) -> int:
 
     table = []
     for label, count, run, last_step_on_first_files in RUNS:
-        found = validations(run)
-        for step in STEPS:
-            if step in found:
-                record = found[step]
-                table.append(
-                    {
-                        "run": label,
-                        "train_trajectories": count,
-                        "files": "first"
-                        if last_step_on_first_files is None or step <= last_step_on_first_files
-                        else "regenerated",
-                        "step": step,
-                        "valid_one_step_loss": record["valid_one_step_loss"],
-                        "valid_rollout_mse": record["valid_rollout_mse"],
-                    }
-                )
+        for step, record in sorted(validations(run).items()):
+            table.append(
+                {
+                    "run": label,
+                    "train_trajectories": count,
+                    "files": "first"
+                    if last_step_on_first_files is None or step <= last_step_on_first_files
+                    else "regenerated",
+                    "step": step,
+                    "valid_one_step_loss": record["valid_one_step_loss"],
+                    "valid_rollout_mse": record["valid_rollout_mse"],
+                }
+            )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_atomic(out / "data_scaling.json", json.dumps(table, indent=1) + "\n")
@@ -97,7 +93,7 @@ def main(argv=None) -> int:
         ax.set_ylabel(label)
     # Right: the data-scaling curve, at every step where at least two sizes were validated on the same files.
     for files, style in (("first", "s--"), ("regenerated", "D-")):
-        for step in STEPS:
+        for step in sorted({p["step"] for p in table}):
             points = sorted(
                 (p["train_trajectories"], p["valid_rollout_mse"])
                 for p in table
