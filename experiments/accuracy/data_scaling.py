@@ -9,13 +9,13 @@ only the number of training trajectories differs. The 400-trajectory run is trac
 trajectories of the same files (``subset.py``) and their logs and configs are in
 ``experiments/accuracy/scaling/<K>/``. The dataset was regenerated in session 6 and is not bit-identical to
 the first one (float32 rounding differs between machines, and the trajectories are chaotic): track A's first
-25,056 steps and the 64-trajectory run used the first files, the 16-trajectory run to 50,000 steps
-(``scaling/16``) and track A from step 25,056 on the regenerated ones; ``scaling/16-session4`` is the first
-16-trajectory run (20,000 steps, first files). Every record is tagged with the files it was validated on, and
-the data-scaling panel only joins points of the same files. Reads the validation records (one-step loss
-without noise and the full 494-frame rollout MSE, mean over the 12 trajectories) and writes
-``data_scaling.json`` and ``data_scaling.png``: the learning curve of each run, and the rollout MSE against
-the number of training trajectories at every step where more than one size was validated.
+25,056 steps used the first files, the 16- and 64-trajectory runs to 50,000 steps (``scaling/16``,
+``scaling/64``) and track A from step 25,056 on the regenerated ones; ``scaling/16-session4`` and
+``scaling/64-session4`` are the first runs of those sizes (20,000 steps, first files). Every record is
+tagged with the files it was validated on, and the data-scaling panel only joins points of the same files. Reads
+the validation records (one-step loss without noise and the full 494-frame rollout MSE, mean over the 12
+trajectories) and writes ``data_scaling.json`` and ``data_scaling.png``: the learning curve of each run, and the
+rollout MSE against the number of training trajectories at every step where more than one size was validated.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ HERE = Path(__file__).resolve().parent
 RUNS = (
     ("16 trajectories (regenerated files)", 16, HERE / "scaling" / "16", 0),
     ("16 trajectories (first files, session 4)", 16, HERE / "scaling" / "16-session4", None),
-    ("64 trajectories (first files)", 64, HERE / "scaling" / "64", None),
+    ("64 trajectories (regenerated files)", 64, HERE / "scaling" / "64", 0),
+    ("64 trajectories (first files, session 4)", 64, HERE / "scaling" / "64-session4", None),
     ("400 trajectories (track A; regenerated files after 25,056)", 400, HERE / "run", 25056),
 )
 COUNTS = sorted({count for _, count, _, _ in RUNS})
