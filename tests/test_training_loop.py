@@ -341,3 +341,50 @@ def test_an_interrupted_export_says_so_and_resume_exports_the_model(signal_name,
     resumed = main(["train", "--data", str(tiny_dataset), "--out", str(run), "--resume", "--no-progress"])
     assert resumed == 0
     assert load_model(run / "model")[2]["record"]["steps"] == 20
+
+
+def test_weight_average_resumes_exactly_and_is_what_validation_and_load_params_see(data, tiny_model_config, tmp_path):
+    import dataclasses
+
+    from dispgns.training.checkpoint import load_params, run_config
+
+    config = dataclasses.replace(LOOP, ema_decay=0.9)
+    state, stream, key = fresh(data, tiny_model_config, config)
+    whole = train(state, stream, key, until_step=20).state
+
+    state, stream, key = fresh(data, tiny_model_config, config)
+    run = tmp_path / "run"
+    values = run_config(tiny_model_config, config, state.params["normalization"])
+    (run).mkdir()
+    (run / "config.json").write_text(json.dumps(values))
+    seen = []
+
+    def validator(params):
+        seen.append(params)
+        return {"valid_rollout_mse": float(len(seen))}  # the first validation is the best
+
+    first = Checkpointer(run, keep=2, config=values)
+    half = train(state, stream, key, until_step=10, checkpointer=first, validator=validator).state
+    first.close()
+    # Validation scored the moving average, not the raw weights.
+    for a, b in zip(leaves(seen[0]["network"]), leaves(half.ema)):
+        np.testing.assert_array_equal(a, b)
+    template, stream, _ = fresh(data, tiny_model_config, config)
+    again = Checkpointer(run, keep=2, config=values)
+    restored, restored_key, _ = again.restore(template, jax.random.key(123))
+    for a, b in zip(leaves(half.ema), leaves(restored.ema)):
+        np.testing.assert_array_equal(a, b)
+    resumed = train(restored, stream, restored_key, until_step=20, checkpointer=again).state
+    again.close()
+    for a, b in zip(leaves((whole.params, whole.ema)), leaves((resumed.params, resumed.ema))):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    # The average lags the weights: the comparison above is not that of two equal trees.
+    assert not all(np.allclose(a, b) for a, b in zip(leaves(whole.ema), leaves(whole.params["network"])))
+    # A run directory's parameters (latest or best checkpoint) are the averaged ones.
+    latest, _, _ = load_params(run)
+    best, _, info = load_params(run, best=True)
+    assert info["record"]["steps"] == 10
+    for a, b in zip(leaves(latest["network"]), leaves(resumed.ema)):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(leaves(best["network"]), leaves(half.ema)):
+        np.testing.assert_array_equal(a, b)

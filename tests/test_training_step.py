@@ -248,3 +248,36 @@ def test_train_step_with_network_compiler_options_equals_it_nested_in_a_plain_ji
     np.testing.assert_allclose(float(tuned_metrics["loss"]), float(plain_metrics["loss"]), rtol=1e-5)
     for a, b in zip(jax.tree_util.tree_leaves(tuned.params), jax.tree_util.tree_leaves(plain.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+
+
+def test_weight_moving_average_follows_the_recursion_and_skips_overflowed_steps(trajectories):
+    import dataclasses
+
+    decay = 0.8
+    tc = dataclasses.replace(FIT, ema_decay=decay)
+    stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=2)
+    state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories))
+    assert create_train_state(jax.random.key(0), TINY, FIT, compute_normalization(trajectories)).ema is None
+    leaves = lambda tree: [np.asarray(x, np.float64) for x in jax.tree_util.tree_leaves(tree)]
+    expected = leaves(state.params["network"])  # the average starts at the initial weights
+    for i in range(4):
+        state, _ = train_step(state, stream.batch(i).with_capacity(CAPACITY), jax.random.fold_in(jax.random.key(1), i))
+        expected = [decay * e + (1 - decay) * p for e, p in zip(expected, leaves(state.params["network"]))]
+    for e, a in zip(expected, leaves(state.ema)):
+        np.testing.assert_allclose(a, e, rtol=1e-5, atol=1e-7)
+    # It is what validation and export see, and it differs from the raw weights after training.
+    assert state.eval_params["network"] is state.ema
+    assert state.eval_params["normalization"] is state.params["normalization"]
+    assert not all(np.allclose(a, b) for a, b in zip(leaves(state.ema), leaves(state.params["network"])))
+    # A step that overflows changes neither the weights nor their average.
+    skipped, metrics = train_step(state, stream.batch(4).with_capacity(GraphCapacity(8)), jax.random.key(3))
+    assert bool(metrics["overflow"])
+    for a, b in zip(leaves(skipped.ema), leaves(state.ema)):
+        np.testing.assert_array_equal(a, b)
+    # Fine-tuning: new weights restart the average at them; without an average there is none to restart.
+    restarted = state.with_params(skipped.params)
+    for a, b in zip(leaves(restarted.ema), leaves(skipped.params["network"])):
+        np.testing.assert_array_equal(a, b)
+    assert state.replace(ema=None).with_params(skipped.params).ema is None
+    with pytest.raises(ValueError, match="ema_decay"):
+        TrainConfig(ema_decay=1.0)

@@ -508,8 +508,8 @@ def run(args: argparse.Namespace) -> int:
     init_key, key = jax.random.split(jax.random.key(train_config.seed))
     state = create_train_state(init_key, compute, train_config, normalization)
     if initial is not None:
-        # Adam's moments start at zero whatever the weights: only the parameters change.
-        state = state.replace(params=initial.params)
+        # Adam's moments start at zero whatever the weights: only the parameters (and their average) change.
+        state = state.with_params(initial.params)
     primary = parallel is None or parallel.is_primary  # the one process that writes files other than checkpoints
     if parallel is not None:
         state = parallel.replicate(state)
@@ -620,7 +620,7 @@ def run(args: argparse.Namespace) -> int:
         record["init_from"] = config["init_from"]
     if result.interrupted:
         record["interrupted"] = True
-    params = state.params if parallel is None else parallel.local(state.params)
+    params = state.eval_params if parallel is None else parallel.local(state.eval_params)
     exported = False
     try:
         with sigterm_as_interrupt():

@@ -9,7 +9,8 @@ A run directory holds::
     model/               the exported final model (params.msgpack + model.json)
 
 An orbax checkpoint stores the :class:`~dispgns.training.TrainState` pytree
-(``params``, ``opt_state``, ``step``), the base PRNG key of the run and the
+(``params``, ``opt_state``, ``step``, and ``ema`` when the run keeps a moving
+average of the weights), the base PRNG key of the run and the
 data-order position, plus the resolved configs as JSON, so a checkpoint
 directory is self-describing. Orbax writes under a temporary name and
 renames, so a checkpoint is either complete or absent.
@@ -232,7 +233,10 @@ def configs_from(values: Mapping[str, Any], where: str) -> tuple[ModelConfig, Tr
 
 
 def _state_tree(state: TrainState, key: jax.Array, data_position: int) -> dict[str, Any]:
+    # The moving average only when the run keeps one: checkpoints of runs without it keep their layout.
+    average = {} if state.ema is None else {"ema": state.ema}
     return {
+        **average,
         "params": state.params,
         "opt_state": state.opt_state,
         "step": state.step,
@@ -440,7 +444,9 @@ class Checkpointer:
         except Exception as error:  # orbax and tensorstore raise many types (bare Exception too) on damage
             raise CheckpointError(f"{where}: cannot be read, the checkpoint is damaged ({_reason(error)})") from None
         tree, extra = restored["state"], restored["extra"]
-        state = template.replace(params=tree["params"], opt_state=tree["opt_state"], step=tree["step"])
+        state = template.replace(
+            params=tree["params"], opt_state=tree["opt_state"], step=tree["step"], ema=tree.get("ema")
+        )
         return state, jax.random.wrap_key_data(np.asarray(tree["key"])), dict(extra)
 
     def _config_mismatch(self, manager, step: int) -> str:
@@ -600,7 +606,7 @@ def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[Params,
         checkpointer.close()
     where = path / (BEST_DIR if best else CHECKPOINT_DIR) / str(int(state.step))
     return (
-        state.params,
+        state.eval_params,
         model_config,
         {
             "model": model_config.to_dict(),

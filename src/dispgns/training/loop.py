@@ -250,7 +250,8 @@ def train(
         nonlocal last_validation, validated_at
         if validator is None or validated_at == step:
             return
-        metrics = dict(validator(state.params if parallel is None else parallel.local(state.params)))
+        params = state.eval_params  # the moving average of the weights, when the run keeps one
+        metrics = dict(validator(params if parallel is None else parallel.local(params)))
         last_validation = {
             "kind": "validation",
             "step": step,

@@ -10,7 +10,9 @@ One step on a :class:`~dispgns.training.batches.Batch` of ``B`` examples:
    target acceleration corrected for the input corruption, divided by the
    radius and standardised with ``params["normalization"]``;
 4. loss: squared error summed over ``D``, averaged over the real particles of
-   the batch; Adam on ``params["network"]`` only.
+   the batch; Adam on ``params["network"]`` only;
+5. optionally (``ema_decay > 0``) the moving average of the network's weights
+   follows the updated ones: ``ema <- d * ema + (1 - d) * network``.
 
 :func:`train_step` is pure. If some example's graph needs more than
 ``batch.capacity`` it does not update anything (``metrics["overflow"]`` is
@@ -96,6 +98,13 @@ class TrainConfig:
         (evenly spaced over it, without noise).
       validation_trajectories: valid trajectories rolled out.
       validation_rollout_frames: frames of each validation rollout.
+      ema_decay: decay ``d`` of an exponential moving average of the
+        network's weights (Polyak averaging), kept beside them in the state
+        and checkpoints: validations, the best checkpoint and the exported
+        model use the average (:attr:`TrainState.eval_params`). It spans
+        about ``1 / (1 - d)`` steps and starts at the initial weights (the
+        ones fine-tuned, or the random ones: then it needs a few spans to
+        forget them). 0 (the default) keeps no average.
     """
 
     noise_std: float = 5e-4
@@ -117,6 +126,7 @@ class TrainConfig:
     validation_examples: int = 64
     validation_trajectories: int = 3
     validation_rollout_frames: int = 50
+    ema_decay: float = 0.0
 
     def __post_init__(self):
         once = dict.fromkeys(("batch_size", "num_steps", "log_every", "keep_checkpoints"), 1)
@@ -128,6 +138,8 @@ class TrainConfig:
             positive=("learning_rate", "lr_decay", "lr_decay_steps"),
             nonnegative=("noise_std", "min_learning_rate"),
         )
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"TrainConfig.ema_decay must lie in [0, 1), got {self.ema_decay!r}")
         if self.min_learning_rate > self.learning_rate:
             raise ValueError(
                 f"TrainConfig.min_learning_rate must lie in [0, learning_rate], got {self.min_learning_rate!r}"
@@ -168,9 +180,11 @@ class TrainState:
       opt_state: Adam state of ``params["network"]``.
       step: ``()`` int32, optimiser steps taken (= batches consumed).
       model_config, train_config: static.
+      ema: the moving average of ``params["network"]`` (same structure)
+        when ``train_config.ema_decay > 0``, else ``None``.
 
-    Checkpoint ``params``, ``opt_state`` and ``step`` (plus the configs);
-    restore into the structure of :func:`create_train_state`.
+    Checkpoint ``params``, ``opt_state``, ``step`` and ``ema`` (plus the
+    configs); restore into the structure of :func:`create_train_state`.
     """
 
     params: Params
@@ -178,6 +192,21 @@ class TrainState:
     step: Count
     model_config: ModelConfig = struct.field(pytree_node=False)
     train_config: TrainConfig = struct.field(pytree_node=False)
+    ema: Params | None = None
+
+    @property
+    def eval_params(self) -> Params:
+        """The parameters to validate and export: ``params`` with the moving-average network when there is one."""
+        if self.ema is None:
+            return self.params
+        return {"network": self.ema, "normalization": self.params["normalization"]}
+
+    def with_params(self, params: Params) -> TrainState:
+        """This state with new parameters (fine-tuning from a trained model); the moving average restarts at them.
+
+        The optimiser state is kept: Adam's moments start at zero whatever the weights.
+        """
+        return self.replace(params=params, ema=None if self.ema is None else params["network"])
 
 
 def create_train_state(
@@ -210,6 +239,7 @@ def create_train_state(
         step=jnp.zeros((), jnp.int32),
         model_config=model_config,
         train_config=train_config,
+        ema=params["network"] if train_config.ema_decay > 0 else None,
     )
 
 
@@ -356,10 +386,15 @@ def train_step(
     network = optax.apply_updates(state.params["network"], updates)
     ok = ~aux["overflow"]
     keep = lambda new, old: jax.tree_util.tree_map(lambda n, o: jnp.where(ok, n, o), new, old)
+    ema = state.ema
+    if ema is not None:
+        # optax.incremental_update(new, old, s) = s * new + (1 - s) * old.
+        ema = keep(optax.incremental_update(network, ema, 1.0 - tc.ema_decay), ema)
     new_state = state.replace(
         params={"network": keep(network, state.params["network"]), "normalization": normalization},
         opt_state=keep(opt_state, state.opt_state),
         step=state.step + ok.astype(jnp.int32),
+        ema=ema,
     )
     metrics = {
         "loss": loss,
