@@ -388,3 +388,6 @@ def test_weight_average_resumes_exactly_and_is_what_validation_and_load_params_s
         np.testing.assert_array_equal(a, b)
     for a, b in zip(leaves(best["network"]), leaves(half.ema)):
         np.testing.assert_array_equal(a, b)
+    raw, _, _ = load_params(run, best=True, averaged=False)
+    for a, b in zip(leaves(raw["network"]), leaves(half.params["network"])):
+        np.testing.assert_array_equal(a, b)

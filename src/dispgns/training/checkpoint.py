@@ -574,7 +574,9 @@ def restore_template(
     return create_train_state(jax.random.key(0), model_config, train_config, normalization)
 
 
-def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[Params, ModelConfig, dict[str, Any]]:
+def load_params(
+    path: str | os.PathLike, *, best: bool = False, averaged: bool = True
+) -> tuple[Params, ModelConfig, dict[str, Any]]:
     """Parameters from an exported model directory or a training run directory.
 
     Args:
@@ -582,6 +584,11 @@ def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[Params,
         directory with ``config.json`` (then its exported ``model/``, or its
         latest checkpoint when the run has not exported one yet).
       best: from a run directory, take the best checkpoint by validation.
+      averaged: from a checkpoint of a run that keeps a moving average of
+        the weights (``TrainConfig.ema_decay > 0``), the average (True, what
+        the run validates and exports) or the raw weights (False, read from
+        the checkpoint even when the run has exported a model). No effect
+        on runs without an average.
 
     Returns:
       ``(params, model_config, info)``; ``info["source"]`` says what was loaded.
@@ -592,7 +599,7 @@ def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[Params,
         return params, model_config, {**info, "source": str(path)}
     if not (path / CONFIG_FILE).is_file():
         raise CheckpointError(f"{path}: neither an exported model ({MODEL_FILE}) nor a training run ({CONFIG_FILE})")
-    if not best and (path / MODEL_DIR / MODEL_FILE).is_file():
+    if not best and averaged and (path / MODEL_DIR / MODEL_FILE).is_file():
         params, model_config, info = load_model(path / MODEL_DIR)
         return params, model_config, {**info, "source": str(path / MODEL_DIR)}
     values = read_json(path / CONFIG_FILE, "configuration of the run")
@@ -606,7 +613,7 @@ def load_params(path: str | os.PathLike, *, best: bool = False) -> tuple[Params,
         checkpointer.close()
     where = path / (BEST_DIR if best else CHECKPOINT_DIR) / str(int(state.step))
     return (
-        state.eval_params,
+        state.eval_params if averaged else state.params,
         model_config,
         {
             "model": model_config.to_dict(),
