@@ -539,6 +539,29 @@ TINY_TRAIN = [
 ]
 
 
+def test_a_run_with_a_weight_average_exports_the_average_and_refuses_another_decay_on_resume(
+    tiny_dataset, tmp_path, capsys
+):
+    from dispgns.training.checkpoint import load_model, load_params
+
+    run = tmp_path / "run"
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(run), *TINY_TRAIN, "--set", "train.ema_decay=0.9"]
+    code, _, err = _cli([*argv, "--steps", "20"], capsys)
+    assert code == 0, err
+    exported, _, _ = load_model(run / "model")
+    averaged, _, info = load_params(run, best=True)  # the checkpoint of step 20, read back
+    raw, _, _ = load_params(run, best=True, averaged=False)
+    assert info["record"]["steps"] == 20
+    leaves = jax.tree_util.tree_leaves
+    for a, b in zip(leaves(exported), leaves(averaged), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not all(np.allclose(a, b) for a, b in zip(leaves(exported["network"]), leaves(raw["network"])))
+    # The decay decides what is learned: a resumed run keeps it, and says so.
+    code, _, err = _cli([*argv[:-1], "train.ema_decay=0.5", "--steps", "30", "--resume"], capsys)
+    assert code == 2
+    assert "ema_decay" in err and "0.9" in err and "0.5" in err and "Traceback" not in err
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_signalled_training_exits_with_its_usual_status_and_resumes_exactly(signum, tiny_dataset, tmp_path):

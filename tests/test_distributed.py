@@ -41,7 +41,7 @@ trajs = load_dataset(sys.argv[1], ["train"])[1]["train"]
 report = {"devices": jax.device_count()}
 for kernels in ("plain", "fused"):
     mc = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, connectivity_radius=0.4, kernels=kernels)
-    tc = TrainConfig(batch_size=4, learning_rate=1e-3, mirror_augmentation=True)
+    tc = TrainConfig(batch_size=4, learning_rate=1e-3, mirror_augmentation=True, ema_decay=0.9)
     one = create_train_state(jax.random.key(0), mc, tc, compute_normalization(trajs, noise_std=tc.noise_std))
     parallel = DataParallel()
     four = parallel.replicate(one)
@@ -55,7 +55,12 @@ for kernels in ("plain", "fused"):
         assert not bool(m1["overflow"]) and not bool(m4["overflow"])
         losses.append((float(m1["loss"]), float(m4["loss"])))
         norms.append((float(m1["grad_norm"]), float(m4["grad_norm"])))
-    leaves = zip(jax.tree_util.tree_leaves(one.params), jax.tree_util.tree_leaves(parallel.local(four.params)))
+    # The weights and their moving average alike.
+    leaves = zip(
+        jax.tree_util.tree_leaves((one.params, one.ema)),
+        jax.tree_util.tree_leaves(parallel.local((four.params, four.ema))),
+        strict=True,
+    )
     report[kernels] = {
         "losses": losses,
         "grad_norms": norms,

@@ -391,3 +391,13 @@ def test_weight_average_resumes_exactly_and_is_what_validation_and_load_params_s
     raw, _, _ = load_params(run, best=True, averaged=False)
     for a, b in zip(leaves(raw["network"]), leaves(half.params["network"])):
         np.testing.assert_array_equal(a, b)
+    # A state without an average cannot take these checkpoints: a named disagreement, not "damaged" (which
+    # would send restore through every older checkpoint in turn).
+    plain, _, _ = fresh(data, tiny_model_config, LOOP)
+    other = Checkpointer(run, keep=2, config=values)
+    try:
+        with pytest.raises(CheckpointError, match="ema_decay: checkpoint 0.9") as caught:
+            other.restore(plain, jax.random.key(0))
+    finally:
+        other.close()
+    assert caught.value.mismatch and "damaged" not in str(caught.value)

@@ -260,10 +260,11 @@ def test_weight_moving_average_follows_the_recursion_and_skips_overflowed_steps(
     assert create_train_state(jax.random.key(0), TINY, FIT, compute_normalization(trajectories)).ema is None
     leaves = lambda tree: [np.asarray(x, np.float64) for x in jax.tree_util.tree_leaves(tree)]
     expected = leaves(state.params["network"])  # the average starts at the initial weights
+    initial = state
     for i in range(4):
         state, _ = train_step(state, stream.batch(i).with_capacity(CAPACITY), jax.random.fold_in(jax.random.key(1), i))
-        expected = [decay * e + (1 - decay) * p for e, p in zip(expected, leaves(state.params["network"]))]
-    for e, a in zip(expected, leaves(state.ema)):
+        expected = [decay * e + (1 - decay) * p for e, p in zip(expected, leaves(state.params["network"]), strict=True)]
+    for e, a in zip(expected, leaves(state.ema), strict=True):
         np.testing.assert_allclose(a, e, rtol=1e-5, atol=1e-7)
     # It is what validation and export see, and it differs from the raw weights after training.
     assert state.eval_params["network"] is state.ema
@@ -272,12 +273,21 @@ def test_weight_moving_average_follows_the_recursion_and_skips_overflowed_steps(
     # A step that overflows changes neither the weights nor their average.
     skipped, metrics = train_step(state, stream.batch(4).with_capacity(GraphCapacity(8)), jax.random.key(3))
     assert bool(metrics["overflow"])
-    for a, b in zip(leaves(skipped.ema), leaves(state.ema)):
+    for a, b in zip(leaves(skipped.ema), leaves(state.ema), strict=True):
         np.testing.assert_array_equal(a, b)
     # Fine-tuning: new weights restart the average at them; without an average there is none to restart.
     restarted = state.with_params(skipped.params)
-    for a, b in zip(leaves(restarted.ema), leaves(skipped.params["network"])):
+    assert restarted.ema is not None
+    for a, b in zip(leaves(restarted.ema), leaves(skipped.params["network"]), strict=True):
         np.testing.assert_array_equal(a, b)
     assert state.replace(ema=None).with_params(skipped.params).ema is None
-    with pytest.raises(ValueError, match="ema_decay"):
-        TrainConfig(ema_decay=1.0)
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="ema_decay"):
+            TrainConfig(ema_decay=bad)
+    # The step with an average, jitted (as shipped) and traced op by op: the same weights and average.
+    batch, key = stream.batch(0).with_capacity(CAPACITY), jax.random.key(5)
+    jitted, _ = train_step(initial, batch, key)
+    with jax.disable_jit():
+        eager, _ = train_step(initial, batch, key)
+    for a, b in zip(leaves((jitted.params, jitted.ema)), leaves((eager.params, eager.ema)), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)

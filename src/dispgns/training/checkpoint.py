@@ -432,7 +432,7 @@ class Checkpointer:
     def _restore_step(self, manager, step: int, template: TrainState, key: jax.Array):
         where = f"{manager.directory}/{step}"
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, _state_tree(template, key, 0))
-        mismatch = self._config_mismatch(manager, step)
+        mismatch = self._config_mismatch(manager, step, averaged=template.ema is not None)
         if mismatch:
             raise CheckpointError(
                 f"{where}: written for another configuration than the run's config.json ({mismatch})", mismatch=True
@@ -445,35 +445,54 @@ class Checkpointer:
             raise CheckpointError(f"{where}: cannot be read, the checkpoint is damaged ({_reason(error)})") from None
         tree, extra = restored["state"], restored["extra"]
         state = template.replace(
-            params=tree["params"], opt_state=tree["opt_state"], step=tree["step"], ema=tree.get("ema")
+            params=tree["params"],
+            opt_state=tree["opt_state"],
+            step=tree["step"],
+            ema=tree["ema"] if template.ema is not None else None,
         )
         return state, jax.random.wrap_key_data(np.asarray(tree["key"])), dict(extra)
 
-    def _config_mismatch(self, manager, step: int) -> str:
-        """The model fields in which checkpoint ``step``'s stored config differs from the run's ('' if none known)."""
-        mine = self.config.get("model")
-        if not isinstance(mine, Mapping):
-            return ""
+    def _config_mismatch(self, manager, step: int, *, averaged: bool) -> str:
+        """How checkpoint ``step``'s stored config differs from the run's ('' if it does not, or is unknown).
+
+        The model fields must agree with the run's config.json, and the stored
+        training config must keep a weight average exactly when the restoring
+        state does (``averaged``): the two trees differ in shape otherwise, which
+        orbax would report as damage, and every checkpoint of the run would then
+        be tried in turn.
+        """
         try:
             extra = manager.restore(step, args=ocp.args.Composite(extra=ocp.args.JsonRestore()))["extra"]
-            theirs = extra["config"]["model"]
+            stored = extra["config"]
         except Exception:  # a damaged checkpoint: the full restore reports it
             return ""
-        if not isinstance(theirs, Mapping):
+        if not isinstance(stored, Mapping):
             return ""
-        ignored = {"kernels"}  # a speed setting, the same function
-        # A field missing on either side was added to ModelConfig after that side was written: it then had
-        # the field's default behaviour, so a checkpoint of an older version still resumes a run.
-        defaults = {field.name: field.default for field in dataclasses.fields(ModelConfig)}
+        diff = []
+        theirs_train = stored.get("train")
+        if isinstance(theirs_train, Mapping):
+            # A checkpoint written before TrainConfig.ema_decay existed had no average.
+            decay = theirs_train.get("ema_decay", 0.0)
+            if (decay != 0) != averaged:
+                diff.append(
+                    f"ema_decay: checkpoint {decay!r} ({'with' if decay else 'without'} a weight average), "
+                    f"the restoring state {'with' if averaged else 'without'} one"
+                )
+        mine, theirs = self.config.get("model"), stored.get("model")
+        if isinstance(mine, Mapping) and isinstance(theirs, Mapping):
+            ignored = {"kernels"}  # a speed setting, the same function
+            # A field missing on either side was added to ModelConfig after that side was written: it then had
+            # the field's default behaviour, so a checkpoint of an older version still resumes a run.
+            defaults = {field.name: field.default for field in dataclasses.fields(ModelConfig)}
 
-        def value(config, name):
-            return config.get(name, defaults.get(name))
+            def value(config, name):
+                return config.get(name, defaults.get(name))
 
-        diff = [
-            f"{name}: checkpoint {value(theirs, name)!r}, config.json {value(mine, name)!r}"
-            for name in sorted(set(mine) | set(theirs))
-            if name not in ignored and value(theirs, name) != value(mine, name)
-        ]
+            diff += [
+                f"{name}: checkpoint {value(theirs, name)!r}, config.json {value(mine, name)!r}"
+                for name in sorted(set(mine) | set(theirs))
+                if name not in ignored and value(theirs, name) != value(mine, name)
+            ]
         return "; ".join(diff)
 
     def close(self) -> None:

@@ -136,9 +136,9 @@ class TrainConfig:
             self,
             integers={**once, **dict.fromkeys(counts, 0)},
             positive=("learning_rate", "lr_decay", "lr_decay_steps"),
-            nonnegative=("noise_std", "min_learning_rate"),
+            nonnegative=("noise_std", "min_learning_rate", "ema_decay"),
         )
-        if not 0.0 <= self.ema_decay < 1.0:
+        if self.ema_decay >= 1.0:
             raise ValueError(f"TrainConfig.ema_decay must lie in [0, 1), got {self.ema_decay!r}")
         if self.min_learning_rate > self.learning_rate:
             raise ValueError(
@@ -180,11 +180,13 @@ class TrainState:
       opt_state: Adam state of ``params["network"]``.
       step: ``()`` int32, optimiser steps taken (= batches consumed).
       model_config, train_config: static.
-      ema: the moving average of ``params["network"]`` (same structure)
-        when ``train_config.ema_decay > 0``, else ``None``.
+      ema: ``Params | None``; the moving average of ``params["network"]``
+        (the same structure) when ``train_config.ema_decay > 0``, else
+        ``None`` (which is then no pytree leaf at all).
 
-    Checkpoint ``params``, ``opt_state``, ``step`` and ``ema`` (plus the
-    configs); restore into the structure of :func:`create_train_state`.
+    Checkpoint ``params``, ``opt_state``, ``step``, and ``ema`` when it is not
+    ``None`` (plus the configs); restore into the structure of
+    :func:`create_train_state` for the same ``train_config``.
     """
 
     params: Params
