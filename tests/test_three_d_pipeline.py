@@ -168,6 +168,11 @@ def test_the_default_2d_model_is_the_better_one_by_its_record():
         choice = selection["symmetrize"]
         assert choice["valid_rollout_mse_on"] < choice["valid_rollout_mse_off"] == selection["valid_rollout_mse"]
         assert "--symmetrize" in choice["command"].split()
+    # Where it replaced an earlier default, both were scored as shipped on the same selection trajectories.
+    against = selection.get("as_shipped_against_previous")
+    if against:
+        assert against["pooled_60_rollout_mse"] < against["previous_pooled_60_rollout_mse"]
+        assert against["paired_difference_60"]["mean"] < 0
 
 
 def test_model_option_takes_a_shipped_name_and_an_existing_path_wins(tmp_path, monkeypatch, model3d):
