@@ -45,6 +45,7 @@ for kernels in ("plain", "fused"):
     one = create_train_state(jax.random.key(0), mc, tc, compute_normalization(trajs, noise_std=tc.noise_std))
     parallel = DataParallel()
     four = parallel.replicate(one)
+    start = one.params["network"]  # where the moving average starts
     whole = BatchStream.for_training(trajs, mc, tc)
     split = BatchStream.for_training(trajs, mc, tc, shards=4)
     losses, norms = [], []
@@ -55,16 +56,20 @@ for kernels in ("plain", "fused"):
         assert not bool(m1["overflow"]) and not bool(m4["overflow"])
         losses.append((float(m1["loss"]), float(m4["loss"])))
         norms.append((float(m1["grad_norm"]), float(m4["grad_norm"])))
-    # The weights and their moving average alike.
     leaves = zip(
-        jax.tree_util.tree_leaves((one.params, one.ema)),
-        jax.tree_util.tree_leaves(parallel.local((four.params, four.ema))),
-        strict=True,
+        jax.tree_util.tree_leaves(one.params), jax.tree_util.tree_leaves(parallel.local(four.params)), strict=True
     )
+    averages = list(zip(jax.tree_util.tree_leaves(one.ema), jax.tree_util.tree_leaves(parallel.local(four.ema))))
     report[kernels] = {
         "losses": losses,
         "grad_norms": norms,
         "max_param_difference": max(float(np.max(np.abs(np.asarray(a) - b))) for a, b in leaves),
+        # The moving average: how far the two runs' averages part, and how far the 4-device one moved at all.
+        "max_average_difference": max(float(np.max(np.abs(np.asarray(a) - b))) for a, b in averages),
+        "average_moved": max(
+            float(np.max(np.abs(b - np.asarray(c))))
+            for (_, b), c in zip(averages, jax.tree_util.tree_leaves(start), strict=True)
+        ),
         "step": int(four.step),
     }
 try:
@@ -93,6 +98,8 @@ def test_four_devices_train_like_one_device_with_the_same_global_batch(tiny_data
         # The gradients are summed over the devices exactly once (a double sum would scale them by 4).
         np.testing.assert_allclose(*np.asarray(run["grad_norms"]).T, rtol=1e-5, err_msg=kernels)
         assert run["max_param_difference"] <= 20 * 1e-3, run["max_param_difference"]
+        # An average that a device never updated would not have moved; one updated alike parts by far less.
+        assert run["max_average_difference"] <= 0.1 * run["average_moved"], run
         assert run["step"] == 12
     assert "does not split over 4 devices" in report["indivisible"]
 

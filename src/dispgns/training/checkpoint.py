@@ -434,9 +434,7 @@ class Checkpointer:
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, _state_tree(template, key, 0))
         mismatch = self._config_mismatch(manager, step, averaged=template.ema is not None)
         if mismatch:
-            raise CheckpointError(
-                f"{where}: written for another configuration than the run's config.json ({mismatch})", mismatch=True
-            )
+            raise CheckpointError(f"{where}: written for another configuration ({mismatch})", mismatch=True)
         try:
             restored = manager.restore(
                 step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), extra=ocp.args.JsonRestore())
@@ -459,7 +457,8 @@ class Checkpointer:
         training config must keep a weight average exactly when the restoring
         state does (``averaged``): the two trees differ in shape otherwise, which
         orbax would report as damage, and every checkpoint of the run would then
-        be tried in turn.
+        be tried in turn. A stored config without a training part (not written
+        by :func:`run_config`) is not checked for the average.
         """
         try:
             extra = manager.restore(step, args=ocp.args.Composite(extra=ocp.args.JsonRestore()))["extra"]
@@ -473,7 +472,7 @@ class Checkpointer:
         if isinstance(theirs_train, Mapping):
             # A checkpoint written before TrainConfig.ema_decay existed had no average.
             decay = theirs_train.get("ema_decay", 0.0)
-            if (decay != 0) != averaged:
+            if bool(decay) != averaged:
                 diff.append(
                     f"ema_decay: checkpoint {decay!r} ({'with' if decay else 'without'} a weight average), "
                     f"the restoring state {'with' if averaged else 'without'} one"
