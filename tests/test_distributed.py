@@ -59,7 +59,9 @@ for kernels in ("plain", "fused"):
     leaves = zip(
         jax.tree_util.tree_leaves(one.params), jax.tree_util.tree_leaves(parallel.local(four.params)), strict=True
     )
-    averages = list(zip(jax.tree_util.tree_leaves(one.ema), jax.tree_util.tree_leaves(parallel.local(four.ema))))
+    averages = list(
+        zip(jax.tree_util.tree_leaves(one.ema), jax.tree_util.tree_leaves(parallel.local(four.ema)), strict=True)
+    )
     report[kernels] = {
         "losses": losses,
         "grad_norms": norms,

@@ -443,10 +443,7 @@ class Checkpointer:
             raise CheckpointError(f"{where}: cannot be read, the checkpoint is damaged ({_reason(error)})") from None
         tree, extra = restored["state"], restored["extra"]
         state = template.replace(
-            params=tree["params"],
-            opt_state=tree["opt_state"],
-            step=tree["step"],
-            ema=tree["ema"] if template.ema is not None else None,
+            params=tree["params"], opt_state=tree["opt_state"], step=tree["step"], ema=tree.get("ema")
         )
         return state, jax.random.wrap_key_data(np.asarray(tree["key"])), dict(extra)
 
