@@ -401,3 +401,29 @@ def test_weight_average_resumes_exactly_and_is_what_validation_and_load_params_s
     finally:
         other.close()
     assert caught.value.mismatch and "damaged" not in str(caught.value)
+
+
+def test_a_checkpoint_without_an_average_is_a_named_mismatch_for_a_state_with_one(data, tiny_model_config, tmp_path):
+    """The other direction of the check above: turning the average on in a run whose checkpoints have none."""
+    import dataclasses
+
+    from dispgns.training.checkpoint import run_config
+
+    state, stream, key = fresh(data, tiny_model_config, LOOP)
+    run = tmp_path / "run"
+    run.mkdir()
+    values = run_config(tiny_model_config, LOOP, state.params["normalization"])
+    (run / "config.json").write_text(json.dumps(values))
+    writer = Checkpointer(run, keep=2, config=values)
+    train(state, stream, key, until_step=5, checkpointer=writer)
+    writer.close()
+
+    averaged, _, _ = fresh(data, tiny_model_config, dataclasses.replace(LOOP, ema_decay=0.9))
+    reader = Checkpointer(run, keep=2, config=values)
+    try:
+        with pytest.raises(CheckpointError, match=r"ema_decay: checkpoint 0\.0 \(without a weight average\)") as caught:
+            reader.restore(averaged, jax.random.key(0))
+    finally:
+        reader.close()
+    assert caught.value.mismatch and "damaged" not in str(caught.value)
+    assert "the restoring state with one" in str(caught.value)
