@@ -427,3 +427,32 @@ def test_a_checkpoint_without_an_average_is_a_named_mismatch_for_a_state_with_on
         reader.close()
     assert caught.value.mismatch and "damaged" not in str(caught.value)
     assert "the restoring state with one" in str(caught.value)
+
+
+def test_resume_on_other_validation_files_warns_that_validations_do_not_compare(tiny_dataset, tmp_path, capsys):
+    """A dataset regenerated on another machine is not bit-identical: the resumed run says its scores moved files."""
+    import shutil
+
+    import h5py
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "20", *TINY_ARGS]) == 0
+    recorded = json.loads((run / "config.json").read_text())["dataset"]["valid_fingerprint"]
+    assert isinstance(recorded, str) and len(recorded) == 16
+    capsys.readouterr()
+
+    # The same files: no warning.
+    assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "30", *TINY_ARGS]) == 0
+    assert "validation trajectories" not in capsys.readouterr().err
+
+    with h5py.File(data / "valid.h5", "r+") as store:
+        group = store[sorted(store)[0]]
+        group["position"][-1, 0, 0] += 1e-6  # a last-frame rounding difference
+    assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "40", *TINY_ARGS]) == 0
+    error = capsys.readouterr().err
+    assert f"{data / 'valid.h5'}: not the validation trajectories this run was validated on before" in error
+    assert f"was {recorded}" in error and "from step 30" in error
+    now = json.loads((run / "config.json").read_text())["dataset"]["valid_fingerprint"]
+    assert now != recorded  # the next resume compares with these files

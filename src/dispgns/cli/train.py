@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import os
 import shutil
 import statistics
@@ -207,6 +208,38 @@ def _differences(stored, requested, fields) -> list[str]:
         for name in fields
         if getattr(stored, name) != getattr(requested, name)
     ]
+
+
+def validation_fingerprint(trajectories) -> str | None:
+    """A digest of the validation trajectories' positions and radii (``None`` without any).
+
+    Two runs' validation scores compare only on the same files. A dataset regenerated
+    with the same command on another machine starts from the same states but is not
+    bit-identical (float rounding, then chaos), so the digest is of the arrays.
+    """
+    import numpy as np
+
+    if not trajectories:
+        return None
+    digest = hashlib.sha256()
+    for trajectory in trajectories:
+        for array in (trajectory.position, trajectory.radius):
+            digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()[:16]
+
+
+def _warn_if_validation_files_changed(stored: dict, dataset_info: dict, data: Path, step: int) -> None:
+    """Say so when a resumed run validates on other trajectories than before (older runs recorded none)."""
+    before = (stored.get("dataset") or {}).get("valid_fingerprint")
+    now = dataset_info["valid_fingerprint"]
+    if before and before != now:
+        print(
+            f"warning: {data / 'valid.h5'}: not the validation trajectories this run was validated on before "
+            f"(fingerprint {now}, was {before}; regenerated on another machine?): validations from step {step} "
+            "on do not compare with the earlier ones, and the best checkpoint is replaced only by a validation "
+            "better than the best earlier one",
+            file=sys.stderr,
+        )
 
 
 def resumed_configs(stored_model, stored_train, explicit: dict[str, dict[str, Any]], run_dir: Path):
@@ -499,6 +532,7 @@ def run(args: argparse.Namespace) -> int:
         "frame_dt": metadata.frame_dt,
         "box_half_size": metadata.box_half_size,
         "length_scale": metadata.length_scale,
+        "valid_fingerprint": validation_fingerprint(valid),
     }
     config = run_config(model_config, train_config, normalization, dataset_info)
     if initial is not None:
@@ -537,6 +571,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"skipped a damaged checkpoint: {reason}", file=sys.stderr)
             if extra.get("skipped"):
                 print(f"resuming from the newest intact checkpoint, step {int(state.step)}", file=sys.stderr)
+        _warn_if_validation_files_changed(stored, dataset_info, Path(args.data), int(state.step))
         # Records past the checkpoint (or all, if the run died before its first one) are redone; a run
         # that had reached its last step redoes its final validation, so that record goes too.
         if primary:
