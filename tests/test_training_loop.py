@@ -452,7 +452,26 @@ def test_resume_on_other_validation_files_warns_that_validations_do_not_compare(
         group["position"][-1, 0, 0] += 1e-6  # a last-frame rounding difference
     assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "40", *TINY_ARGS]) == 0
     error = capsys.readouterr().err
-    assert f"{data / 'valid.h5'}: not the validation trajectories this run was validated on before" in error
-    assert f"was {recorded}" in error and "from step 30" in error
+    assert f"{data / 'valid.h5'}: not the validation trajectories this run was validated on up to step 30" in error
+    assert f"was {recorded}" in error
     now = json.loads((run / "config.json").read_text())["dataset"]["valid_fingerprint"]
     assert now != recorded  # the next resume compares with these files
+
+
+def test_the_validation_file_warning_needs_two_fingerprints_that_differ(capsys):
+    """Runs recorded before fingerprints existed, and data without a validation split, resume silently."""
+    from pathlib import Path
+
+    from dispgns.cli.train import _warn_if_validation_files_changed
+
+    data = Path("data")
+    for stored, now in [
+        ({}, "b"),  # a config.json without a dataset record
+        ({"dataset": {"path": "data"}}, "b"),  # written before the fingerprint
+        ({"dataset": {"valid_fingerprint": "a"}}, None),  # no validation split now: nothing is validated
+        ({"dataset": {"valid_fingerprint": "a"}}, "a"),  # the same files
+    ]:
+        _warn_if_validation_files_changed(stored, {"valid_fingerprint": now}, data, 7)
+        assert capsys.readouterr().err == ""
+    _warn_if_validation_files_changed({"dataset": {"valid_fingerprint": "a"}}, {"valid_fingerprint": "b"}, data, 7)
+    assert "validated on up to step 7 (fingerprint b, was a;" in capsys.readouterr().err

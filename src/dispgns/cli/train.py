@@ -224,7 +224,9 @@ def validation_fingerprint(trajectories) -> str | None:
     digest = hashlib.sha256()
     for trajectory in trajectories:
         for array in (trajectory.position, trajectory.radius):
-            digest.update(np.ascontiguousarray(array).tobytes())
+            array = np.ascontiguousarray(array)
+            digest.update(f"{array.dtype.str}{array.shape}".encode())
+            digest.update(array)  # the buffer, not a copy
     return digest.hexdigest()[:16]
 
 
@@ -232,12 +234,12 @@ def _warn_if_validation_files_changed(stored: dict, dataset_info: dict, data: Pa
     """Say so when a resumed run validates on other trajectories than before (older runs recorded none)."""
     before = (stored.get("dataset") or {}).get("valid_fingerprint")
     now = dataset_info["valid_fingerprint"]
-    if before and before != now:
+    if before and now and before != now:  # without a validation split nothing is validated from here on
         print(
-            f"warning: {data / 'valid.h5'}: not the validation trajectories this run was validated on before "
-            f"(fingerprint {now}, was {before}; regenerated on another machine?): validations from step {step} "
-            "on do not compare with the earlier ones, and the best checkpoint is replaced only by a validation "
-            "better than the best earlier one",
+            f"warning: {data / 'valid.h5'}: not the validation trajectories this run was validated on up to "
+            f"step {step} (fingerprint {now}, was {before}; regenerated on another machine?): the validations "
+            "logged from here on do not compare with the earlier ones, and the best checkpoint is replaced "
+            "only by a validation better than the best earlier one",
             file=sys.stderr,
         )
 
@@ -571,7 +573,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"skipped a damaged checkpoint: {reason}", file=sys.stderr)
             if extra.get("skipped"):
                 print(f"resuming from the newest intact checkpoint, step {int(state.step)}", file=sys.stderr)
-        _warn_if_validation_files_changed(stored, dataset_info, Path(args.data), int(state.step))
+            if primary:  # without a checkpoint there was no validation to compare with
+                _warn_if_validation_files_changed(stored, dataset_info, Path(args.data), int(state.step))
         # Records past the checkpoint (or all, if the run died before its first one) are redone; a run
         # that had reached its last step redoes its final validation, so that record goes too.
         if primary:
