@@ -458,20 +458,32 @@ def test_resume_on_other_validation_files_warns_that_validations_do_not_compare(
     assert now != recorded  # the next resume compares with these files
 
 
-def test_the_validation_file_warning_needs_two_fingerprints_that_differ(capsys):
+def test_the_validation_warning_needs_other_files_or_other_settings(capsys):
     """Runs recorded before fingerprints existed, and data without a validation split, resume silently."""
+    import dataclasses
     from pathlib import Path
 
-    from dispgns.cli.train import _warn_if_validation_files_changed
+    from dispgns.cli.train import _warn_if_validation_changed
 
-    data = Path("data")
+    data, same = Path("data"), LOOP
     for stored, now in [
         ({}, "b"),  # a config.json without a dataset record
         ({"dataset": {"path": "data"}}, "b"),  # written before the fingerprint
         ({"dataset": {"valid_fingerprint": "a"}}, None),  # no validation split now: nothing is validated
         ({"dataset": {"valid_fingerprint": "a"}}, "a"),  # the same files
     ]:
-        _warn_if_validation_files_changed(stored, {"valid_fingerprint": now}, data, 7)
+        _warn_if_validation_changed(stored, {"valid_fingerprint": now}, same, same, data, 7)
         assert capsys.readouterr().err == ""
-    _warn_if_validation_files_changed({"dataset": {"valid_fingerprint": "a"}}, {"valid_fingerprint": "b"}, data, 7)
+    # How long and how often do not change what a validation scores.
+    longer = dataclasses.replace(LOOP, num_steps=LOOP.num_steps + 10, validate_every=LOOP.validate_every + 1)
+    _warn_if_validation_changed({}, {"valid_fingerprint": "a"}, LOOP, longer, data, 7)
+    assert capsys.readouterr().err == ""
+
+    recorded_a = {"dataset": {"valid_fingerprint": "a"}}
+    _warn_if_validation_changed(recorded_a, {"valid_fingerprint": "b"}, same, same, data, 7)
     assert "validated on up to step 7 (fingerprint b, was a;" in capsys.readouterr().err
+    more = dataclasses.replace(LOOP, validation_trajectories=LOOP.validation_trajectories + 1)
+    _warn_if_validation_changed({}, {"valid_fingerprint": "a"}, LOOP, more, data, 7)
+    error = capsys.readouterr().err
+    assert "the validation settings changed after step 7 (train.validation_trajectories" in error
+    assert "do not compare with the earlier ones" in error

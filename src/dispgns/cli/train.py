@@ -230,16 +230,36 @@ def validation_fingerprint(trajectories) -> str | None:
     return digest.hexdigest()[:16]
 
 
-def _warn_if_validation_files_changed(stored: dict, dataset_info: dict, data: Path, step: int) -> None:
-    """Say so when a resumed run validates on other trajectories than before (older runs recorded none)."""
+# Resumable training fields that change what a validation scores (the others change how long and how often).
+VALIDATION_FIELDS = ("validation_examples", "validation_trajectories", "validation_rollout_frames")
+
+
+def _warn_if_validation_changed(stored: dict, dataset_info: dict, stored_train, train, data: Path, step: int) -> None:
+    """Say so when a resumed run validates otherwise than up to ``step``: other files or other settings.
+
+    ``stored`` is the run's config.json as it was (runs of older versions recorded
+    no fingerprint: not compared), ``dataset_info`` the dataset record about to be
+    written, ``stored_train``/``train`` the training configs before and after.
+    """
+    reasons = []
     before = (stored.get("dataset") or {}).get("valid_fingerprint")
     now = dataset_info["valid_fingerprint"]
     if before and now and before != now:  # without a validation split nothing is validated from here on
+        reasons.append(
+            f"{data / 'valid.h5'}: not the validation trajectories this run was validated on up to step {step} "
+            f"(fingerprint {now}, was {before}; regenerated on another machine?)"
+        )
+    changed = [
+        f"train.{name} {getattr(stored_train, name)!r} -> {getattr(train, name)!r}"
+        for name in VALIDATION_FIELDS
+        if getattr(stored_train, name) != getattr(train, name)
+    ]
+    if changed:
+        reasons.append(f"the validation settings changed after step {step} ({', '.join(changed)})")
+    if reasons:
         print(
-            f"warning: {data / 'valid.h5'}: not the validation trajectories this run was validated on up to "
-            f"step {step} (fingerprint {now}, was {before}; regenerated on another machine?): the validations "
-            "logged from here on do not compare with the earlier ones, and the best checkpoint is replaced "
-            "only by a validation better than the best earlier one",
+            f"warning: {'; '.join(reasons)}: the validations logged from here on do not compare with the earlier "
+            "ones, and the best checkpoint is replaced only by a validation better than the best earlier one",
             file=sys.stderr,
         )
 
@@ -574,7 +594,9 @@ def run(args: argparse.Namespace) -> int:
             if extra.get("skipped"):
                 print(f"resuming from the newest intact checkpoint, step {int(state.step)}", file=sys.stderr)
             if primary:  # without a checkpoint there was no validation to compare with
-                _warn_if_validation_files_changed(stored, dataset_info, Path(args.data), int(state.step))
+                _warn_if_validation_changed(
+                    stored, dataset_info, stored_train, train_config, Path(args.data), int(state.step)
+                )
         # Records past the checkpoint (or all, if the run died before its first one) are redone; a run
         # that had reached its last step redoes its final validation, so that record goes too.
         if primary:
