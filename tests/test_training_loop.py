@@ -486,4 +486,6 @@ def test_the_validation_warning_needs_other_files_or_other_settings(capsys):
     _warn_if_validation_changed({}, {"valid_fingerprint": "a"}, LOOP, more, data, 7)
     error = capsys.readouterr().err
     assert "the validation settings changed after step 7 (train.validation_trajectories" in error
+    _warn_if_validation_changed({}, {"valid_fingerprint": None}, LOOP, more, data, 7)  # nothing to validate
+    assert "validation settings" not in capsys.readouterr().err
     assert "do not compare with the earlier ones" in error

@@ -254,7 +254,7 @@ def _warn_if_validation_changed(stored: dict, dataset_info: dict, stored_train, 
         for name in VALIDATION_FIELDS
         if getattr(stored_train, name) != getattr(train, name)
     ]
-    if changed:
+    if changed and now:  # likewise
         reasons.append(f"the validation settings changed after step {step} ({', '.join(changed)})")
     if reasons:
         print(
