@@ -455,7 +455,31 @@ def test_resume_on_other_validation_files_warns_that_validations_do_not_compare(
     assert f"{data / 'valid.h5'}: not the validation trajectories this run was validated on up to step 30" in error
     assert f"was {recorded}" in error
     now = json.loads((run / "config.json").read_text())["dataset"]["valid_fingerprint"]
-    assert now != recorded  # the next resume compares with these files
+    assert now != recorded
+    # Validated on the new files up to step 40 (the checkpoint records them): the next resume is silent.
+    assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "50", *TINY_ARGS]) == 0
+    assert "validation trajectories" not in capsys.readouterr().err
+
+
+def test_a_second_resume_from_the_same_checkpoint_warns_again(tiny_dataset, tmp_path, capsys):
+    """config.json is rewritten when a run resumes; the checkpoint's own record says what it was validated on."""
+    import shutil
+
+    import h5py
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "20", *TINY_ARGS]) == 0
+    with h5py.File(data / "valid.h5", "r+") as store:
+        group = store[sorted(store)[0]]
+        group["position"][-1, 0, 0] += 1e-6
+    capsys.readouterr()
+    # A resume that ends before its next checkpoint (already at its last step), then the same resume again.
+    for _ in range(2):
+        assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "20", *TINY_ARGS]) == 0
+        error = capsys.readouterr().err
+        assert "not the validation trajectories this run was validated on up to step 20" in error
 
 
 def test_the_validation_warning_needs_other_files_or_other_settings(capsys):
@@ -465,27 +489,32 @@ def test_the_validation_warning_needs_other_files_or_other_settings(capsys):
 
     from dispgns.cli.train import _warn_if_validation_changed
 
-    data, same = Path("data"), LOOP
-    for stored, now in [
-        ({}, "b"),  # a config.json without a dataset record
+    data, loop = Path("data"), dataclasses.asdict(LOOP)
+    for validated, now in [
+        ({}, "b"),  # a config without a dataset record
         ({"dataset": {"path": "data"}}, "b"),  # written before the fingerprint
         ({"dataset": {"valid_fingerprint": "a"}}, None),  # no validation split now: nothing is validated
         ({"dataset": {"valid_fingerprint": "a"}}, "a"),  # the same files
     ]:
-        _warn_if_validation_changed(stored, {"valid_fingerprint": now}, same, same, data, 7)
+        _warn_if_validation_changed({**validated, "train": loop}, {"valid_fingerprint": now}, LOOP, data, 7)
         assert capsys.readouterr().err == ""
     # How long and how often do not change what a validation scores.
     longer = dataclasses.replace(LOOP, num_steps=LOOP.num_steps + 10, validate_every=LOOP.validate_every + 1)
-    _warn_if_validation_changed({}, {"valid_fingerprint": "a"}, LOOP, longer, data, 7)
+    _warn_if_validation_changed({"train": loop}, {"valid_fingerprint": "a"}, longer, data, 7)
+    assert capsys.readouterr().err == ""
+    # A training config written before a validation field existed had that field's default.
+    older = {k: v for k, v in loop.items() if k != "validation_rollout_frames"}
+    default = dataclasses.replace(LOOP, validation_rollout_frames=TrainConfig().validation_rollout_frames)
+    _warn_if_validation_changed({"train": older}, {"valid_fingerprint": "a"}, default, data, 7)
     assert capsys.readouterr().err == ""
 
-    recorded_a = {"dataset": {"valid_fingerprint": "a"}}
-    _warn_if_validation_changed(recorded_a, {"valid_fingerprint": "b"}, same, same, data, 7)
+    recorded_a = {"dataset": {"valid_fingerprint": "a"}, "train": loop}
+    _warn_if_validation_changed(recorded_a, {"valid_fingerprint": "b"}, LOOP, data, 7)
     assert "validated on up to step 7 (fingerprint b, was a;" in capsys.readouterr().err
     more = dataclasses.replace(LOOP, validation_trajectories=LOOP.validation_trajectories + 1)
-    _warn_if_validation_changed({}, {"valid_fingerprint": "a"}, LOOP, more, data, 7)
+    _warn_if_validation_changed({"train": loop}, {"valid_fingerprint": "a"}, more, data, 7)
     error = capsys.readouterr().err
     assert "the validation settings changed after step 7 (train.validation_trajectories" in error
-    _warn_if_validation_changed({}, {"valid_fingerprint": None}, LOOP, more, data, 7)  # nothing to validate
+    _warn_if_validation_changed({"train": loop}, {"valid_fingerprint": None}, more, data, 7)  # nothing to validate
     assert "validation settings" not in capsys.readouterr().err
     assert "do not compare with the earlier ones" in error

@@ -9,6 +9,7 @@ import os
 import shutil
 import statistics
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -234,25 +235,32 @@ def validation_fingerprint(trajectories) -> str | None:
 VALIDATION_FIELDS = ("validation_examples", "validation_trajectories", "validation_rollout_frames")
 
 
-def _warn_if_validation_changed(stored: dict, dataset_info: dict, stored_train, train, data: Path, step: int) -> None:
+def _warn_if_validation_changed(validated: Mapping, dataset_info: dict, train, data: Path, step: int) -> None:
     """Say so when a resumed run validates otherwise than up to ``step``: other files or other settings.
 
-    ``stored`` is the run's config.json as it was (runs of older versions recorded
-    no fingerprint: not compared), ``dataset_info`` the dataset record about to be
-    written, ``stored_train``/``train`` the training configs before and after.
+    ``validated`` is the run config stored in the restored checkpoint (the files and
+    settings its validations used; config.json is rewritten as soon as a run resumes,
+    so a second resume before the next checkpoint would compare with the new ones),
+    ``dataset_info`` the dataset record about to be written, ``train`` the training
+    config from here on. Configs of older versions recorded no fingerprint (not
+    compared) and no field added since (its default then applied).
     """
     reasons = []
-    before = (stored.get("dataset") or {}).get("valid_fingerprint")
+    before = (validated.get("dataset") or {}).get("valid_fingerprint")
     now = dataset_info["valid_fingerprint"]
     if before and now and before != now:  # without a validation split nothing is validated from here on
         reasons.append(
             f"{data / 'valid.h5'}: not the validation trajectories this run was validated on up to step {step} "
             f"(fingerprint {now}, was {before}; regenerated on another machine?)"
         )
+    from dispgns.training import TrainConfig
+
+    stored_train = validated.get("train") or {}
+    defaults = {field.name: field.default for field in dataclasses.fields(TrainConfig)}
     changed = [
-        f"train.{name} {getattr(stored_train, name)!r} -> {getattr(train, name)!r}"
+        f"train.{name} {stored_train.get(name, defaults[name])!r} -> {getattr(train, name)!r}"
         for name in VALIDATION_FIELDS
-        if getattr(stored_train, name) != getattr(train, name)
+        if stored_train.get(name, defaults[name]) != getattr(train, name)
     ]
     if changed and now:  # likewise
         reasons.append(f"the validation settings changed after step {step} ({', '.join(changed)})")
@@ -594,8 +602,13 @@ def run(args: argparse.Namespace) -> int:
             if extra.get("skipped"):
                 print(f"resuming from the newest intact checkpoint, step {int(state.step)}", file=sys.stderr)
             if primary:  # without a checkpoint there was no validation to compare with
+                validated = extra.get("config")
                 _warn_if_validation_changed(
-                    stored, dataset_info, stored_train, train_config, Path(args.data), int(state.step)
+                    validated if isinstance(validated, Mapping) else stored,
+                    dataset_info,
+                    train_config,
+                    Path(args.data),
+                    int(state.step),
                 )
         # Records past the checkpoint (or all, if the run died before its first one) are redone; a run
         # that had reached its last step redoes its final validation, so that record goes too.
