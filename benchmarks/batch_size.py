@@ -4,8 +4,8 @@ Is the recipe's batch of 2 the right one for a CPU? A larger batch costs more
 per step but may cost less per example (wider matmuls, one optimizer update per
 batch). This times the training step of ``sedimentation-2d``'s network (latent
 64, hidden 64, 5 blocks) with its fine-tuning recipe (track J of
-``experiments/accuracy``: 2-step pushforward, mirror augmentation, weight
-average) on batches of the densest windows (the last frames) of paper-protocol
+``experiments/accuracy``: 2-step pushforward, weight average; the mirror
+augmentation is host-side, not timed) on batches of the densest windows of paper-protocol
 trajectories (220 particles, as ``benchmarks/gnn.py``), for each batch size,
 with dispgns.tuning's settings as the command line uses them.
 
@@ -13,7 +13,9 @@ with dispgns.tuning's settings as the command line uses them.
     python benchmarks/batch_size.py --sizes 1 2 4 8 16       # all cores
 
 The sizes are timed in interleaved rounds (the median over rounds of each
-round's median). Prints a line per batch size and ends with one JSON line: per
+round's median of ``--repeats`` steps, after one untimed warm-up step). Only the
+compiled step is timed: the host's share of a step (drawing the batch, the
+loop's checks and logging) is not. Prints a line per batch size and ends with one JSON line: per
 size the median wall and process-CPU seconds of a step (and the rounds' range),
 examples per wall second and per CPU second, and their ratios to batch 2's
 (``examples_per_cpu_s_over_batch_2``: the recipe's batch is the comparison).
@@ -30,8 +32,6 @@ import json
 import os
 import sys
 
-import _machine  # benchmarks/_machine.py, beside this script
-
 from dispgns import tuning  # nothing of JAX has started yet
 
 if "--no-tuning" not in sys.argv[1:] and __name__ == "__main__":
@@ -39,7 +39,7 @@ if "--no-tuning" not in sys.argv[1:] and __name__ == "__main__":
 
 import jax
 import numpy as np
-from gnn import timed, trajectories  # benchmarks/gnn.py, beside this script
+from gnn import machine_info, timed, trajectories  # benchmarks/gnn.py, beside this script
 
 from dispgns.pretrained import load_pretrained
 from dispgns.training import TrainConfig, compute_normalization, create_train_state, train_step
@@ -64,22 +64,31 @@ def main() -> None:
     options = tuning.network_compiler_options(model_config) if tuned else {}
     # Track J's recipe (experiments/accuracy/finetune_ema_fast.yaml) with the batch size varied.
     recipe = TrainConfig(noise_std=1e-4, pushforward_steps=2, mirror_augmentation=True, ema_decay=0.9998)
+    # Each trajectory gives ~5 windows among the densest (its last frames): enough trajectories for the largest
+    # batch to be filled with distinct windows.
     trajs = trajectories(220, args.frames, seeds=tuple(range(max(2, (max(args.sizes) + 4) // 5))))
     norm = compute_normalization(trajs, noise_std=recipe.noise_std)
     step = tuning.jitted(train_step, options) if tuned else jax.jit(train_step)
 
     # Compile every size first, then time them in interleaved rounds: this machine's speed drifts within
     # minutes (benchmarks/README.md), and sizes timed one after the other would measure the drift.
-    compiled = {}
+    compiled, graphs = {}, {}
     for size in args.sizes:
         train_config = dataclasses.replace(recipe, batch_size=size)
         state = create_train_state(jax.random.key(0), model_config, train_config, norm)
         stream = BatchStream.for_training(trajs, model_config, train_config)
-        # The densest packings: the last windows of the trajectories, as many as the batch needs.
-        late = np.argsort(-stream.index.start, kind="stable")[:size]
-        batch = stream.make_batch(late)
+        # The densest windows (most neighbour pairs), as many as the batch needs. make_batch applies no mirror
+        # flips (BatchStream does them on the host when it draws batches): the compiled step is the same program.
+        densest = np.argsort(-stream.pairs, kind="stable")[:size]
+        batch = stream.make_batch(densest)
         key = jax.random.key(0)
         compiled[size] = functools.partial(step.lower(state, batch, key).compile(), state, batch, key)
+        _, metrics = compiled[size]()
+        if bool(metrics["overflow"]):  # a step that drops its update is not the step a run takes
+            raise SystemExit(f"batch {size}: the graph overflowed its capacity ({batch.capacity})")
+        # Padding differs between sizes (budgets are rounded up a ladder): the edge slots against the real pairs.
+        slots = batch.edge_budget or size * (batch.capacity.edges + batch.node_budget)  # None: per example
+        graphs[size] = {"edge_slots": int(slots), "pairs": int(stream.pairs[densest].sum())}
     rounds = {size: [] for size in args.sizes}
     for _ in range(args.rounds):
         for size in args.sizes:
@@ -95,6 +104,7 @@ def main() -> None:
             "step_cpu_ms": 1e3 * cpu,
             "examples_per_wall_s": size / wall,
             "examples_per_cpu_s": size / cpu,
+            **graphs[size],
         }
         print(
             f"batch {size:3d}: {1e3 * wall:7.1f} ms/step wall, {1e3 * cpu:7.1f} ms CPU, "
@@ -118,7 +128,7 @@ def main() -> None:
         "tuned": tuned,
         "cpu_affinity": sorted(os.sched_getaffinity(0)),
         "results": results,
-        "machine": _machine.machine_info(jax=jax.__version__, xla_flags=os.environ.get("XLA_FLAGS", "")),
+        "machine": machine_info(),
     }
     print(json.dumps(report))
 

@@ -456,7 +456,7 @@ def test_resume_on_other_validation_files_warns_that_validations_do_not_compare(
     assert f"was {recorded}" in error
     now = json.loads((run / "config.json").read_text())["dataset"]["valid_fingerprint"]
     assert now != recorded
-    # Validated on the new files up to step 40 (the checkpoint records them): the next resume is silent.
+    # The checkpoint of step 40 records the new files: resuming on them is silent.
     assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "50", *TINY_ARGS]) == 0
     assert "validation trajectories" not in capsys.readouterr().err
 
@@ -482,6 +482,29 @@ def test_a_second_resume_from_the_same_checkpoint_warns_again(tiny_dataset, tmp_
         assert "not the validation trajectories this run was validated on up to step 20" in error
 
 
+def test_a_resume_past_a_damaged_checkpoint_compares_with_the_one_it_restores(tiny_dataset, tmp_path, capsys):
+    """The intact checkpoint before a damaged one was validated on the earlier files: its own record says so."""
+    import shutil
+
+    import h5py
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    run, keep = tmp_path / "run", ["--set", "train.keep_checkpoints=2"]
+    assert main(["train", "--data", str(data), "--out", str(run), "--steps", "20", *keep, *TINY_ARGS]) == 0
+    with h5py.File(data / "valid.h5", "r+") as store:
+        group = store[sorted(store)[0]]
+        group["position"][-1, 0, 0] += 1e-6
+    assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "40", *keep, *TINY_ARGS]) == 0
+    assert "validated on up to step 20" in capsys.readouterr().err
+    shutil.rmtree(run / "checkpoints" / "40" / "state")  # step 40 (saved with the new files) is damaged
+    # Back at step 20 (saved with the earlier files), already at --steps 20: nothing is trained or saved.
+    assert main(["train", "--data", str(data), "--out", str(run), "--resume", "--steps", "20", *keep, *TINY_ARGS]) == 0
+    error = capsys.readouterr().err
+    assert "checkpoints/40" in error and "damaged" in error
+    assert "not the validation trajectories this run was validated on up to step 20" in error
+
+
 def test_the_validation_warning_needs_other_files_or_other_settings(capsys):
     """Runs recorded before fingerprints existed, and data without a validation split, resume silently."""
     import dataclasses
@@ -502,16 +525,15 @@ def test_the_validation_warning_needs_other_files_or_other_settings(capsys):
     longer = dataclasses.replace(LOOP, num_steps=LOOP.num_steps + 10, validate_every=LOOP.validate_every + 1)
     _warn_if_validation_changed({"train": loop}, {"valid_fingerprint": "a"}, longer, data, 7)
     assert capsys.readouterr().err == ""
-    # A training config written before a validation field existed had that field's default.
-    older = {k: v for k, v in loop.items() if k != "validation_rollout_frames"}
-    default = dataclasses.replace(LOOP, validation_rollout_frames=TrainConfig().validation_rollout_frames)
-    _warn_if_validation_changed({"train": older}, {"valid_fingerprint": "a"}, default, data, 7)
-    assert capsys.readouterr().err == ""
+    # A record without training settings (a Checkpointer given no run config) has nothing to compare.
+    more = dataclasses.replace(LOOP, validation_trajectories=LOOP.validation_trajectories + 1)
+    for validated in ({}, {"train": None}, {"train": {"seed": 0}}):
+        _warn_if_validation_changed(validated, {"valid_fingerprint": "a"}, more, data, 7)
+        assert capsys.readouterr().err == ""
 
     recorded_a = {"dataset": {"valid_fingerprint": "a"}, "train": loop}
     _warn_if_validation_changed(recorded_a, {"valid_fingerprint": "b"}, LOOP, data, 7)
     assert "validated on up to step 7 (fingerprint b, was a;" in capsys.readouterr().err
-    more = dataclasses.replace(LOOP, validation_trajectories=LOOP.validation_trajectories + 1)
     _warn_if_validation_changed({"train": loop}, {"valid_fingerprint": "a"}, more, data, 7)
     error = capsys.readouterr().err
     assert "the validation settings changed after step 7 (train.validation_trajectories" in error

@@ -238,12 +238,13 @@ VALIDATION_FIELDS = ("validation_examples", "validation_trajectories", "validati
 def _warn_if_validation_changed(validated: Mapping, dataset_info: dict, train, data: Path, step: int) -> None:
     """Say so when a resumed run validates otherwise than up to ``step``: other files or other settings.
 
-    ``validated`` is the run config stored in the restored checkpoint (the files and
-    settings its validations used; config.json is rewritten as soon as a run resumes,
-    so a second resume before the next checkpoint would compare with the new ones),
-    ``dataset_info`` the dataset record about to be written, ``train`` the training
-    config from here on. Configs of older versions recorded no fingerprint (not
-    compared) and no field added since (its default then applied).
+    ``validated`` is the run config stored in the restored checkpoint: the files and
+    settings the run had when that checkpoint was saved (config.json is rewritten as
+    soon as a run resumes, so a second resume before the next checkpoint would compare
+    with the new ones). ``dataset_info`` is the dataset record about to be written,
+    ``train`` the training config from here on. What the record lacks is not compared:
+    runs of older versions recorded no fingerprint, and a checkpoint written by
+    :class:`Checkpointer` without a run config has no training settings.
     """
     reasons = []
     before = (validated.get("dataset") or {}).get("valid_fingerprint")
@@ -253,14 +254,12 @@ def _warn_if_validation_changed(validated: Mapping, dataset_info: dict, train, d
             f"{data / 'valid.h5'}: not the validation trajectories this run was validated on up to step {step} "
             f"(fingerprint {now}, was {before}; regenerated on another machine?)"
         )
-    from dispgns.training import TrainConfig
-
-    stored_train = validated.get("train") or {}
-    defaults = {field.name: field.default for field in dataclasses.fields(TrainConfig)}
+    stored_train = validated.get("train")
+    stored_train = stored_train if isinstance(stored_train, Mapping) else {}
     changed = [
-        f"train.{name} {stored_train.get(name, defaults[name])!r} -> {getattr(train, name)!r}"
+        f"train.{name} {stored_train[name]!r} -> {getattr(train, name)!r}"
         for name in VALIDATION_FIELDS
-        if stored_train.get(name, defaults[name]) != getattr(train, name)
+        if name in stored_train and stored_train[name] != getattr(train, name)
     ]
     if changed and now:  # likewise
         reasons.append(f"the validation settings changed after step {step} ({', '.join(changed)})")
