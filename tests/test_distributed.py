@@ -152,12 +152,14 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
+# A global batch of 2, as the default `cpu` configuration's: each of two processes holds one example of a batch
+# split over two devices (the case docs/distributed.md shows).
 CONFIG = """model:
   latent_size: 16
   hidden_size: 16
   message_passing_steps: 2
 train:
-  batch_size: 4
+  batch_size: 2
   learning_rate: 1.0e-3
   num_steps: 16
   log_every: 4

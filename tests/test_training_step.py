@@ -202,6 +202,24 @@ def test_compacted_batches_train_exactly_like_padded_ones(trajectories):
     np.testing.assert_allclose(float(metrics["loss"]), float(metrics_a["loss"]), rtol=1e-5)
 
 
+def test_a_process_part_smaller_than_the_device_count_keeps_the_whole_batch_budgets(trajectories):
+    # Two processes of one device each with a global batch of 2: each process holds one example while the batch
+    # is split over 2 devices, so its own examples leave one device's shard empty.
+    kwargs = dict(input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=3, shards=2)
+    stream = BatchStream(trajectories, mirror=True, **kwargs)
+    for i in range(3):
+        whole = stream.batch(i)
+        parts = [stream.batch(i, slice(k, k + 1)) for k in range(2)]
+        for k, part in enumerate(parts):
+            assert (part.capacity, part.edge_budget, part.node_budget) == (
+                whole.capacity,
+                whole.edge_budget,
+                whole.node_budget,
+            )
+            np.testing.assert_array_equal(part.position[0], whole.position[k])
+            np.testing.assert_array_equal(part.example[0], whole.example[k])
+
+
 def test_mirror_augmentation_reflects_horizontal_axes_deterministically(trajectories):
     kwargs = dict(input_sequence_length=6, batch_size=4, connectivity_radius=0.2, seed=2)
     plain = BatchStream(trajectories, **kwargs)

@@ -59,7 +59,7 @@ def register(subparsers) -> None:
         choices=tuple(DEFAULT_FRAMES),
         default="paper",
         help="the 2-D container: paper, the paper's 0.2 m square (default); wide4, wide16: the containers "
-        "of 'dispgns generate --preset wide4/wide16', 4x and 16x wider, same height (~600 and ~2,700 "
+        "of 'dispgns generate --preset wide4/wide16', 4x and 16x wider, same height (~700 and ~2,800 "
         "disks; the shipped model was trained in the paper's box only)",
     )
     parser.add_argument(

@@ -342,7 +342,9 @@ class BatchStream:
         if not self.compact_edges:
             return None
         parts = np.array_split(np.asarray(ids, np.int64), self.shards)
-        return edge_budget_for(max(self._edge_need(part) for part in parts))
+        # Fewer examples than shards (one process's part of a batch split over more devices than it holds
+        # examples): the empty shards need no edges.
+        return edge_budget_for(max(self._edge_need(part) for part in parts if part.size))
 
     @staticmethod
     def grow(batch: Batch) -> Batch:
