@@ -202,22 +202,30 @@ def test_compacted_batches_train_exactly_like_padded_ones(trajectories):
     np.testing.assert_allclose(float(metrics["loss"]), float(metrics_a["loss"]), rtol=1e-5)
 
 
-def test_a_process_part_smaller_than_the_device_count_keeps_the_whole_batch_budgets(trajectories):
-    # Two processes of one device each with a global batch of 2: each process holds one example while the batch
-    # is split over 2 devices, so its own examples leave one device's shard empty.
-    kwargs = dict(input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=3, shards=2)
-    stream = BatchStream(trajectories, mirror=True, **kwargs)
-    for i in range(3):
+@pytest.mark.parametrize("batch_size", [2, 4])
+def test_a_process_part_keeps_the_whole_batch_budgets(trajectories, batch_size):
+    # Two processes of one device each: each holds half of every global batch, split over 2 devices in all. With a
+    # batch of 2 a process's own examples leave one device's shard empty. Two node budgets (the fixture's
+    # trajectories hold 8 and 10 particles) make a part's own budgets differ from the whole batch's.
+    kwargs = dict(input_sequence_length=6, batch_size=batch_size, connectivity_radius=0.2, seed=3, shards=2)
+    stream = BatchStream(trajectories, mirror=True, node_budgets=(8, 16), **kwargs)
+    half = batch_size // 2
+    own_budgets_differ = False
+    for i in range(4):
         whole = stream.batch(i)
-        parts = [stream.batch(i, slice(k, k + 1)) for k in range(2)]
-        for k, part in enumerate(parts):
-            assert (part.capacity, part.edge_budget, part.node_budget) == (
-                whole.capacity,
-                whole.edge_budget,
-                whole.node_budget,
+        ids = stream.batch_examples(i)
+        for k in range(2):
+            part = stream.batch(i, slice(k * half, (k + 1) * half))
+            budgets = (part.capacity, part.edge_budget, part.node_budget)
+            assert budgets == (whole.capacity, whole.edge_budget, whole.node_budget)
+            own = stream.make_batch(ids[k * half : (k + 1) * half])
+            own_budgets_differ |= (own.capacity, own.edge_budget, own.node_budget) != budgets
+            n = own.node_budget
+            np.testing.assert_array_equal(
+                part.position[..., :n, :], whole.position[k * half : (k + 1) * half, ..., :n, :]
             )
-            np.testing.assert_array_equal(part.position[0], whole.position[k])
-            np.testing.assert_array_equal(part.example[0], whole.example[k])
+            np.testing.assert_array_equal(part.example, whole.example[k * half : (k + 1) * half])
+    assert own_budgets_differ  # the parts are made to the whole batch's budgets, not to their own
 
 
 def test_mirror_augmentation_reflects_horizontal_axes_deterministically(trajectories):

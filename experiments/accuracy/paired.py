@@ -1,7 +1,7 @@
 """Paired comparison of two models on the same trajectories, pooled over several evaluations (issue 19).
 
-    python experiments/accuracy/paired.py --out experiments/accuracy/results/selection_session16.json \
-        shipped=runs/sel-valid-J/metrics.json,runs/sel-s9-J/metrics.json \
+    python experiments/accuracy/paired.py --out runs/JM.json \
+        shipped=runs/sel-valid-J/metrics.json,runs/seed9-emaJ/metrics.json \
         M=runs/sel-valid-M/metrics.json,runs/sel-s9-M/metrics.json
 
 Each argument is NAME=PATH[,PATH...], the ``metrics.json`` files of ``dispgns evaluate`` of one model; the first
