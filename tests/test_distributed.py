@@ -39,9 +39,12 @@ from dispgns.training.distributed import DataParallel
 
 trajs = load_dataset(sys.argv[1], ["train"])[1]["train"]
 report = {"devices": jax.device_count()}
-for kernels in ("plain", "fused"):
+# The loss unrolled over 2 steps after a pushforward step: its per-device shares sum to the whole batch's too.
+unrolled = {"pushforward_steps": 1, "unroll_steps": 2}
+variants = {"plain": ("plain", {}), "fused": ("fused", {}), "unrolled": ("plain", unrolled)}
+for name, (kernels, extra) in variants.items():
     mc = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, connectivity_radius=0.4, kernels=kernels)
-    tc = TrainConfig(batch_size=4, learning_rate=1e-3, mirror_augmentation=True, ema_decay=0.9)
+    tc = TrainConfig(batch_size=4, learning_rate=1e-3, mirror_augmentation=True, ema_decay=0.9, **extra)
     one = create_train_state(jax.random.key(0), mc, tc, compute_normalization(trajs, noise_std=tc.noise_std))
     parallel = DataParallel()
     four = parallel.replicate(one)
@@ -62,7 +65,7 @@ for kernels in ("plain", "fused"):
     averages = list(
         zip(jax.tree_util.tree_leaves(one.ema), jax.tree_util.tree_leaves(parallel.local(four.ema)), strict=True)
     )
-    report[kernels] = {
+    report[name] = {
         "losses": losses,
         "grad_norms": norms,
         "max_param_difference": max(float(np.max(np.abs(np.asarray(a) - b))) for a, b in leaves),
@@ -94,11 +97,11 @@ def _python(code: str, *args, env=None, timeout=600) -> str:
 def test_four_devices_train_like_one_device_with_the_same_global_batch(tiny_dataset):
     report = json.loads(_python(_FOUR_DEVICE_TRAINING, tiny_dataset, env=FOUR_DEVICES))
     assert report["devices"] == 4
-    for kernels in ("plain", "fused"):
-        run = report[kernels]
-        np.testing.assert_allclose(*np.asarray(run["losses"]).T, rtol=1e-5, err_msg=kernels)
+    for name in ("plain", "fused", "unrolled"):
+        run = report[name]
+        np.testing.assert_allclose(*np.asarray(run["losses"]).T, rtol=1e-5, err_msg=name)
         # The gradients are summed over the devices exactly once (a double sum would scale them by 4).
-        np.testing.assert_allclose(*np.asarray(run["grad_norms"]).T, rtol=1e-5, err_msg=kernels)
+        np.testing.assert_allclose(*np.asarray(run["grad_norms"]).T, rtol=1e-5, err_msg=name)
         assert run["max_param_difference"] <= 20 * 1e-3, run["max_param_difference"]
         # An average that a device never updated would not have moved; one updated alike parts by far less.
         assert run["max_average_difference"] <= 0.1 * run["average_moved"], run

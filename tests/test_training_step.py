@@ -1,11 +1,14 @@
 """Noise, targets, normalisation, batches, the jitted step, and overfitting a tiny dataset."""
 
+import dataclasses
 from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax import lax
+from jax.flatten_util import ravel_pytree
 
 from dispgns.graph import GraphCapacity
 from dispgns.model import ModelConfig
@@ -317,3 +320,109 @@ def test_weight_moving_average_follows_the_recursion_and_skips_overflowed_steps(
         eager, _ = train_step(initial, batch, key)
     for a, b in zip(leaves((jitted.params, jitted.ema)), leaves((eager.params, eager.ema)), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def _manual_unrolled_loss(params, batch, pushforward, steps, frozen_windows=False):
+    """The unrolled loss composed from the simulator's public steps (noise-free inputs).
+
+    The window first moves on ``pushforward`` frames without gradient; then each of ``steps`` steps: the
+    standardised network output against the noise-corrected target, and the window moves on by
+    :func:`dispgns.simulator.predict_step_batch` (which evaluates the network again, independently of the loss).
+    """
+    from dispgns.simulator import build_graph, network_output_batch, predict_step_batch, sanitize
+
+    c = TINY.input_sequence_length
+    norm = params["normalization"]
+    windows = jnp.asarray(batch.position[:, :c])
+    advance = lambda w: (
+        predict_step_batch(
+            params, w, batch.radius, model_config=TINY, capacity=batch.capacity, mask=batch.mask
+        ).position
+    )
+    for _ in range(pushforward):
+        windows = jnp.concatenate([windows[:, 1:], lax.stop_gradient(advance(windows))[:, None]], axis=1)
+    c += pushforward  # the first target frame
+    total = 0.0
+    for j in range(steps):
+        x, a = jax.vmap(lambda w, r, m: sanitize(w, r, m, TINY))(windows, batch.radius, batch.mask)
+        graphs = jax.vmap(lambda p, m: build_graph(p, m, batch.capacity, TINY))(x[:, -1], batch.mask)
+        out = network_output_batch(params, x, a, graphs, model_config=TINY)
+        target = jax.vmap(target_acceleration)(batch.position[:, c + j], batch.position[:, c + j - 1], windows)
+        target = (target / a[..., None] - norm["acceleration_mean"]) / norm["acceleration_std"]
+        total += jnp.sum(jnp.where(batch.mask, jnp.sum((out - target) ** 2, -1), 0.0))
+        nxt = lax.stop_gradient(advance(windows)) if frozen_windows else advance(windows)
+        windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
+    return total / (jnp.sum(batch.mask) * steps)
+
+
+@pytest.fixture(scope="module")
+def unrolled(trajectories):
+    """A config unrolled over 3 steps after 1 pushforward step, its state after a few training steps (so the network
+    is not near zero), a batch and the same batch padded to more particle slots."""
+    tc = dataclasses.replace(FIT, pushforward_steps=1, unroll_steps=3)
+    kwargs = dict(input_sequence_length=6, batch_size=2, connectivity_radius=0.2, seed=4)
+    kwargs.update(pushforward_steps=1, unroll_steps=3)
+    stream = BatchStream(trajectories, node_budgets=(16,), **kwargs)
+    state = create_train_state(jax.random.key(0), TINY, tc, compute_normalization(trajectories))
+    for i in range(3):
+        state, _ = train_step(state, stream.batch(i).with_capacity(CAPACITY), jax.random.key(i))
+    padded = BatchStream(trajectories, node_budgets=(40,), **kwargs)
+    return tc, state, stream.batch(7).with_capacity(CAPACITY), padded.batch(7).with_capacity(CAPACITY)
+
+
+def test_unrolled_loss_backpropagates_through_the_models_own_rollout(unrolled):
+    tc, state, batch, _ = unrolled
+    assert batch.position.shape[1] == 6 + 1 + 3 and not np.all(batch.mask)
+    params = state.params
+    loss = lambda net: loss_fn(net, params["normalization"], batch, jax.random.key(0), TINY, tc)[0]
+    manual = lambda net, frozen=False: _manual_unrolled_loss(
+        {"network": net, "normalization": params["normalization"]}, batch, 1, 3, frozen
+    )
+    value, grads = jax.value_and_grad(loss)(params["network"])
+    want, want_grads = jax.value_and_grad(manual)(params["network"])
+    np.testing.assert_allclose(float(value), float(want), rtol=1e-5)
+    flat, want_flat = ravel_pytree(grads)[0], ravel_pytree(want_grads)[0]
+    np.testing.assert_allclose(
+        np.asarray(flat), np.asarray(want_flat), rtol=1e-3, atol=1e-6 * float(jnp.abs(want_flat).max())
+    )
+    # The gradient through the predicted frames is part of it: stopping it there gives another gradient.
+    stopped = ravel_pytree(jax.grad(lambda net: manual(net, True))(params["network"]))[0]
+    gap = float(jnp.linalg.norm(stopped - want_flat) / jnp.linalg.norm(want_flat))
+    assert gap > 0.05, gap
+    # The step checks that the batch's windows hold the frames of the config's steps.
+    with pytest.raises(ValueError, match=r"pushforward_steps \+ unroll_steps"):
+        train_step(state.replace(train_config=FIT), batch, jax.random.key(0))
+
+
+def test_unrolled_loss_jit_padding_and_configuration(trajectories, unrolled):
+    tc, state, batch, padded = unrolled
+    assert padded.position.shape[2] == 40 and batch.position.shape[2] == 16
+    grad = lambda b, noise: jax.value_and_grad(loss_fn, has_aux=True)(
+        state.params["network"],
+        state.params["normalization"],
+        b,
+        jax.random.key(2),
+        TINY,
+        dataclasses.replace(tc, noise_std=noise),
+    )
+    close = lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-6 * np.abs(b).max())
+    # Jitted and not, with training noise.
+    (value, aux), grads = grad(batch, 3e-3)
+    (jit_value, _), jit_grads = jax.jit(grad, static_argnums=1)(batch, 3e-3)
+    flat = np.asarray(ravel_pytree(grads)[0])
+    assert not bool(aux["overflow"]) and np.all(np.isfinite(flat))
+    np.testing.assert_allclose(float(jit_value), float(value), rtol=1e-5)
+    close(np.asarray(ravel_pytree(jit_grads)[0]), flat)
+    # Padding to more particle slots changes nothing real (without noise: its draws follow the slot count).
+    (value, _), grads = grad(batch, 0.0)
+    (pad_value, pad_aux), pad_grads = grad(padded, 0.0)
+    assert not bool(pad_aux["overflow"])
+    np.testing.assert_allclose(float(pad_value), float(value), rtol=1e-5)
+    close(np.asarray(ravel_pytree(pad_grads)[0]), np.asarray(ravel_pytree(grads)[0]))
+    # A training step with it updates.
+    new, metrics = train_step(state, batch, jax.random.key(2))
+    assert int(new.step) == int(state.step) + 1 and np.isfinite(float(metrics["loss"]))
+    with pytest.raises(ValueError, match="unroll_steps must be an integer >= 1"):
+        TrainConfig(unroll_steps=0)
+    with pytest.raises(ValueError, match="unroll_steps"):
+        BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2, unroll_steps=0)

@@ -84,6 +84,7 @@ __all__ = [
     "floor_symmetries",
     "network_output",
     "network_output_batch",
+    "next_position_batch",
     "predict_acceleration",
     "predict_position",
     "predict_step",
@@ -275,6 +276,33 @@ def _constrain(position, radius, model_config: ModelConfig):
     return jnp.clip(position, b[:, 0] + a, b[:, 1] - a)
 
 
+def next_position_batch(
+    position_seq: BatchWindow,
+    acceleration: BatchFrame,
+    radius: BatchRadii,
+    mask: BatchMask,
+    *,
+    model_config: ModelConfig,
+) -> BatchFrame:
+    """The frame after ``B`` windows: ``x + (x - x_prev) + acc`` (pure, differentiable).
+
+    Args:
+      position_seq: ``(B, C, N, D)`` positions (normalised units).
+      acceleration: ``(B, N, D)`` per frame^2 (normalised units), e.g.
+        :func:`acceleration_from_output`; padding rows are ignored.
+      radius, mask: ``(B, N)``; padding particles stay where they are.
+      model_config: static; with ``keep_inside_box`` a particle beyond its
+        wall contact position is moved back onto it.
+
+    Returns:
+      ``(B, N, D)`` next positions.
+    """
+    acc = jnp.where(mask[..., None], acceleration, 0.0).astype(position_seq.dtype)
+    last = position_seq[:, -1]
+    moved = _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config)
+    return jnp.where(mask[..., None], moved, last)
+
+
 def _poisoned(x, overflow):
     """``x`` with NaN where ``overflow`` (broadcast over trailing axes): never silently wrong."""
     flag = jnp.reshape(overflow, jnp.shape(overflow) + (1,) * (x.ndim - jnp.ndim(overflow)))
@@ -362,10 +390,7 @@ def predict_step_batch(
     else:
         output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=edge_budget)
         acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
-    acc = jnp.where(mask[..., None], acc, 0.0).astype(position_seq.dtype)
-    last = position_seq[:, -1]
-    moved = _constrain(last + (last - position_seq[:, -2]) + acc, radius, model_config)
-    nxt = jnp.where(mask[..., None], moved, last)
+    nxt = next_position_batch(position_seq, acc, radius, mask, model_config=model_config)
     overflow = graphs.overflow
     if edge_budget is not None:
         overflow = overflow | (graph_lib.merged_edge_count(graphs, x.shape[2]) > edge_budget)

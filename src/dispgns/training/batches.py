@@ -1,8 +1,9 @@
 """Training examples: windows of trajectories, shuffled deterministically, padded to a few budgets.
 
-An example is a window of ``C + 1 + k`` consecutive frames of one trajectory
-(``C`` input frames, then the target frame; ``k`` extra frames when training
-with ``k`` pushforward steps). A batch stacks ``B`` examples, padded to a
+An example is a window of ``C + k + u`` consecutive frames of one trajectory
+(``C`` input frames, ``k`` frames the model predicts when training with ``k``
+pushforward steps, then the targets of the ``u`` steps the loss is taken on,
+one without unrolling). A batch stacks ``B`` examples, padded to a
 node budget (particle slots), with a static graph capacity per example and a
 static edge budget for the batch's merged graph, both sized by the graph
 capacity policy (:mod:`dispgns.graph`, on the ladder of
@@ -50,7 +51,7 @@ from dispgns.graph import (
 )
 from dispgns.model import ModelConfig
 
-# Shapes (jaxtyping, no runtime check): B examples of W = C + 1 + k frames each, example ids.
+# Shapes (jaxtyping, no runtime check): B examples of W = C + k + u frames each, example ids.
 _BatchFrames = Float[ArrayLike, "B W N D"]
 _ExampleIds = Int[ArrayLike, "B 2"]
 _Ids = Int[ArrayLike, "K"]
@@ -68,8 +69,9 @@ class Batch:
     """``B`` padded examples (a pytree; ``capacity`` is static).
 
     Attributes:
-      position: ``(B, W, N, D)`` float32 frames; ``W = C + 1 + k`` (inputs,
-        target, pushforward targets). Padding rows are zero.
+      position: ``(B, W, N, D)`` float32 frames; ``W = C + k + u`` (inputs,
+        the ``k`` pushforward frames, the ``u`` targets of the loss). Padding
+        rows are zero.
       radius: ``(B, N)`` float32; padding entries are 1.
       mask: ``(B, N)`` bool, ``False`` for padding particles.
       example: ``(B, 2)`` int32 ``(trajectory, first frame)`` of each example
@@ -154,7 +156,8 @@ class BatchStream:
       batch_size: ``B``.
       connectivity_radius: graph radius (normalised units).
       seed: data-order seed.
-      pushforward_steps: ``k``; windows hold ``C + 1 + k`` frames.
+      pushforward_steps: ``k``; windows hold ``C + k + u`` frames.
+      unroll_steps: ``u`` (1), the consecutive steps the loss is taken on.
       shuffle: ``False`` keeps examples in order (e.g. for validation).
       node_budgets: allowed particle-slot counts; ``None``: one budget, the
         largest ``N`` rounded up to a multiple of 8.
@@ -193,6 +196,7 @@ class BatchStream:
         connectivity_radius: float,
         seed: int = 0,
         pushforward_steps: int = 0,
+        unroll_steps: int = 1,
         shuffle: bool = True,
         node_budgets: Sequence[int] | None = None,
         capacity_margin: float = 0.03,
@@ -207,8 +211,11 @@ class BatchStream:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.input_sequence_length = int(input_sequence_length)
+        if isinstance(unroll_steps, bool) or int(unroll_steps) != unroll_steps or unroll_steps < 1:
+            raise ValueError(f"unroll_steps must be an integer >= 1, got {unroll_steps!r}")
         self.pushforward_steps = int(pushforward_steps)
-        self.window = self.input_sequence_length + 1 + self.pushforward_steps
+        self.unroll_steps = int(unroll_steps)
+        self.window = self.input_sequence_length + self.pushforward_steps + self.unroll_steps
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.mirror = bool(mirror)
@@ -256,12 +263,13 @@ class BatchStream:
             raise ValueError(f"node budgets {self.node_budgets} cannot hold {max_n} particles")
 
         # Pairs in each example's graph frames: the last input and, with
-        # pushforward, the frames the model will have predicted.
+        # pushforward or unrolling, the frames the model will have predicted.
         c = self.input_sequence_length
+        last_graph_frame = c + self.pushforward_steps + self.unroll_steps - 2
         per_frame = [host_count_pairs(x, connectivity_radius=self.connectivity_radius) for x in self.positions]
         self.pairs = np.array(
             [
-                per_frame[t][s + c - 1 : s + c + self.pushforward_steps].max()
+                per_frame[t][s + c - 1 : s + last_graph_frame + 1].max()
                 for t, s in zip(self.index.trajectory, self.index.start)
             ],
             np.int64,
@@ -288,7 +296,7 @@ class BatchStream:
         train_config: dispgns.training.step.TrainConfig,
         **kwargs: Any,
     ) -> BatchStream:
-        """The stream a run with these configs needs (``C``, ``B``, radius, seed, pushforward, box)."""
+        """The stream a run with these configs needs (``C``, ``B``, radius, seed, pushforward, unrolling, box)."""
         return cls(
             trajectories,
             input_sequence_length=model_config.input_sequence_length,
@@ -296,6 +304,7 @@ class BatchStream:
             connectivity_radius=model_config.connectivity_radius,
             seed=train_config.seed,
             pushforward_steps=train_config.pushforward_steps,
+            unroll_steps=train_config.unroll_steps,
             bounds=model_config.bounds,
             mirror=train_config.mirror_augmentation,
             quarter_turns=train_config.quarter_turn_augmentation,

@@ -55,7 +55,7 @@ class NonFiniteLossError(FloatingPointError):
 class Validator:
     """Scores parameters on the valid split: one-step loss and a short rollout MSE.
 
-    * one-step loss: the training loss without noise or pushforward, on
+    * one-step loss: the training loss without noise, pushforward or unrolling, on
       ``train_config.validation_examples`` windows spread evenly over the
       split (one padded batch, one compilation);
     * rollout MSE: the first ``validation_trajectories`` trajectories rolled
@@ -81,7 +81,7 @@ class Validator:
         self.model_config = model_config
         self.compiler_options = compiler_options
         c = model_config.input_sequence_length
-        self.clean_config = dataclasses.replace(train_config, noise_std=0.0, pushforward_steps=0)
+        self.clean_config = dataclasses.replace(train_config, noise_std=0.0, pushforward_steps=0, unroll_steps=1)
         self.batch = None
         if train_config.validation_examples > 0:
             stream = BatchStream(

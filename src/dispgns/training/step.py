@@ -4,14 +4,18 @@ One step on a :class:`~dispgns.training.batches.Batch` of ``B`` examples:
 
 1. random-walk noise on the ``C`` input frames (:mod:`.noise`);
 2. optionally ``k`` pushforward steps: the model advances the inputs ``k``
-   frames without gradient, and the loss is taken on the next step from its
-   own predictions;
+   frames without gradient, and the loss is taken on the next step(s) from
+   its own predictions;
 3. graph at the last input frame (capacity ``batch.capacity``), network,
    target acceleration corrected for the input corruption, divided by the
    radius and standardised with ``params["normalization"]``;
-4. loss: squared error summed over ``D``, averaged over the real particles of
-   the batch; Adam on ``params["network"]`` only;
-5. optionally (``ema_decay > 0``) the moving average of the network's weights
+4. optionally (``u = unroll_steps > 1``) the model's prediction becomes the
+   next input frame and 3. is repeated ``u - 1`` times, with the gradient
+   flowing through the predicted frames (backpropagation through the
+   rollout: the loss sees how an error grows over ``u`` steps);
+5. loss: squared error summed over ``D``, averaged over the real particles of
+   the batch and the ``u`` steps; Adam on ``params["network"]`` only;
+6. optionally (``ema_decay > 0``) the moving average of the network's weights
    follows the updated ones: ``ema <- d * ema + (1 - d) * network``.
 
 :func:`train_step` is pure. If some example's graph needs more than
@@ -41,7 +45,14 @@ from dispgns.arrays import Count, Flag, Params, PerAxis, PRNGKey, Scalar
 from dispgns.capacity import Attempt, drive
 from dispgns.graph import merged_edge_count
 from dispgns.model import ModelConfig, identity_normalization, init_params
-from dispgns.simulator import build_graph, network_output_batch, predict_step_batch, sanitize
+from dispgns.simulator import (
+    acceleration_from_output,
+    build_graph,
+    network_output_batch,
+    next_position_batch,
+    predict_step_batch,
+    sanitize,
+)
 from dispgns.training.batches import Batch, BatchStream
 from dispgns.training.noise import random_walk_noise, target_acceleration
 from dispgns.tuning import jitted
@@ -75,7 +86,15 @@ class TrainConfig:
       min_learning_rate: the floor the authors lacked (1e-6).
       standardize: standardise radius-normalised velocities and accelerations
         with dataset statistics (True); False is the authors' recipe.
-      pushforward_steps: unrolled steps without gradient before the loss (0).
+      pushforward_steps: steps the model advances the inputs without
+        gradient before the loss (0).
+      unroll_steps: consecutive steps the loss is averaged over, the model's
+        own predictions feeding the next with the gradient flowing through
+        them (1: the one-step loss); windows then hold ``C +
+        pushforward_steps + unroll_steps`` frames. Each step costs about one
+        more forward and backward pass of the network, and memory and
+        compile time grow with it. The logged training loss is then the mean
+        over the steps; the validation's one-step loss stays comparable.
       mirror_augmentation: reflect each training example on each horizontal
         axis with probability 1/2 (the physics is mirror-symmetric; gravity
         is along the last axis), so that the model sees as many wall
@@ -115,6 +134,7 @@ class TrainConfig:
     min_learning_rate: float = 1e-6
     standardize: bool = True
     pushforward_steps: int = 0
+    unroll_steps: int = 1
     mirror_augmentation: bool = False
     quarter_turn_augmentation: bool = False
     num_steps: int = 2_000_000
@@ -129,7 +149,7 @@ class TrainConfig:
     ema_decay: float = 0.0
 
     def __post_init__(self):
-        once = dict.fromkeys(("batch_size", "num_steps", "log_every", "keep_checkpoints"), 1)
+        once = dict.fromkeys(("batch_size", "num_steps", "log_every", "keep_checkpoints", "unroll_steps"), 1)
         counts = ("validate_every", "checkpoint_every", "validation_examples", "validation_trajectories")
         counts += ("validation_rollout_frames", "pushforward_steps")
         check_fields(
@@ -264,13 +284,12 @@ def _any(flag, axis_name: str | None):
     return flag if axis_name is None else lax.psum(flag.astype(jnp.int32), axis_name) > 0
 
 
-def _prepare_batch(
+def _noisy_inputs(
     params, batch: Batch, key, model_config: ModelConfig, train_config: TrainConfig, axis_name: str | None = None
 ):
-    """Inputs, graphs and standardised targets of a batch (no gradient flows through here).
+    """The noisy input windows, advanced ``pushforward_steps`` frames by the model (call with frozen ``params``).
 
-    Returns ``(inputs (B, C, N, D) sanitised, radius (B, N) sanitised,
-    graphs, target (B, N, D), overflow ())``.
+    Returns ``(windows (B, C, N, D), overflow ())``.
     """
     c = model_config.input_sequence_length
     k = train_config.pushforward_steps
@@ -299,12 +318,22 @@ def _prepare_batch(
             return (windows, overflow | jnp.any(step_overflow)), None
 
         (windows, overflow), _ = lax.scan(advance, (windows, overflow), None, length=k)
+    return windows, overflow
+
+
+def _graphs_and_target(params, batch: Batch, windows, frame: int, model_config: ModelConfig):
+    """Sanitised inputs, graphs and the standardised target of the step from ``windows`` to batch frame ``frame``.
+
+    Returns ``(inputs (B, C, N, D) sanitised, radius (B, N) sanitised,
+    graphs, target (B, N, D), overflow ())``.
+    """
+    position, radius, mask = batch.position, batch.radius, batch.mask
     x, a = jax.vmap(lambda w, r, m: sanitize(w, r, m, model_config))(windows, radius, mask)
     graphs = jax.vmap(lambda p, m: build_graph(p, m, batch.capacity, model_config))(x[:, -1], mask)
-    overflow = overflow | jnp.any(graphs.overflow)
+    overflow = jnp.any(graphs.overflow)
     if batch.edge_budget is not None:
         overflow = overflow | (merged_edge_count(graphs, x.shape[2]) > batch.edge_budget)
-    target = jax.vmap(target_acceleration)(position[:, c + k], position[:, c + k - 1], windows) / a[..., None]
+    target = jax.vmap(target_acceleration)(position[:, frame], position[:, frame - 1], windows) / a[..., None]
     norm = params["normalization"]
     target = (target - norm["acceleration_mean"]) / norm["acceleration_std"]
     # The loss masks padding rows out, but a NaN target there would still come
@@ -322,11 +351,17 @@ def loss_fn(
     train_config: TrainConfig,
     axis_name: str | None = None,
 ) -> tuple[Scalar, dict[str, Flag]]:
-    """Mean over the real particles of the batch of the squared error summed over D.
+    """Mean over the real particles of the batch (and the unrolled steps) of the squared error summed over D.
 
     The ``B`` examples are evaluated as one disjoint graph
     (:func:`dispgns.simulator.network_output_batch`), compacted to
-    ``batch.edge_budget`` edge slots when the batch has one.
+    ``batch.edge_budget`` edge slots when the batch has one. With
+    ``train_config.unroll_steps = u > 1`` the loss is the mean of ``u``
+    consecutive steps' losses, each step's input window ending with the
+    previous steps' predictions, differentiated through them; the target of
+    each step is the true next velocity minus the window's last velocity
+    (:func:`~dispgns.training.noise.target_acceleration`), so a position
+    error carried in is not asked to be undone, but its growth is.
 
     With ``axis_name`` (inside ``shard_map`` over a mesh axis that splits the
     batch) ``batch`` is this device's part and the value is its share of the
@@ -335,16 +370,45 @@ def loss_fn(
 
     Returns ``(loss, {"overflow": bool})``.
     """
+    mc, tc = model_config, train_config
+    expected = mc.input_sequence_length + tc.pushforward_steps + tc.unroll_steps
+    if batch.position.shape[1] != expected:
+        raise ValueError(
+            f"batch windows have {batch.position.shape[1]} frames, expected C + pushforward_steps + unroll_steps = "
+            f"{expected}"
+        )
     frozen = lax.stop_gradient({"network": network, "normalization": normalization})
-    x, a, graphs, target, overflow = _prepare_batch(frozen, batch, key, model_config, train_config, axis_name)
+    windows, overflow = _noisy_inputs(frozen, batch, key, mc, tc, axis_name)
     params = {"network": network, "normalization": normalization}
-    output = network_output_batch(params, x, a, graphs, model_config=model_config, edge_budget=batch.edge_budget)
-    error = jnp.where(batch.mask, jnp.sum((output - target) ** 2, axis=-1), 0.0)
+    first = mc.input_sequence_length + tc.pushforward_steps
+    error_sum = 0.0
+    # u is static and small: a Python loop (the u = 1 case is exactly the one-step loss).
+    for step in range(tc.unroll_steps):
+        x, a, graphs, target, step_overflow = _graphs_and_target(frozen, batch, windows, first + step, mc)
+        overflow = overflow | step_overflow
+        output = network_output_batch(params, x, a, graphs, model_config=mc, edge_budget=batch.edge_budget)
+        error_sum = error_sum + jnp.sum(jnp.where(batch.mask, jnp.sum((output - target) ** 2, axis=-1), 0.0))
+        if step + 1 < tc.unroll_steps:
+            windows = _next_windows(params, windows, output, a, batch, mc)
     count = jnp.sum(batch.mask, dtype=jnp.float32)
     if axis_name is not None:
         count = lax.psum(count, axis_name)
-    loss = jnp.sum(error) / jnp.maximum(count, 1.0)
+    loss = error_sum / (jnp.maximum(count, 1.0) * tc.unroll_steps)
     return loss, {"overflow": _any(overflow, axis_name)}
+
+
+def _next_windows(params, windows, output, a, batch: Batch, model_config: ModelConfig):
+    """``windows`` moved on by one frame to the position the standardised ``output`` predicts (differentiable).
+
+    The position update of :func:`dispgns.simulator.predict_step_batch`
+    (``a``: the sanitised radii), from the network output the loss has
+    already computed, so from the network alone even where the pushforward
+    frames are symmetry-averaged (``model_config.symmetrize``; fine-tuning
+    turns it off). No overflow poisoning: the caller has the step's flag.
+    """
+    acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
+    nxt = next_position_batch(windows, acc, batch.radius, batch.mask, model_config=model_config)
+    return jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
 
 
 @functools.partial(jax.jit, static_argnames=("axis_name",))
@@ -355,8 +419,8 @@ def train_step(
 
     Args:
       state: :class:`TrainState`.
-      batch: :class:`~dispgns.training.batches.Batch` with ``W = C + 1 +
-        pushforward_steps`` frames.
+      batch: :class:`~dispgns.training.batches.Batch` with ``W = C +
+        pushforward_steps + unroll_steps`` frames.
       key: PRNG key of this step's noise; use ``jax.random.fold_in(key0,
         state.step)`` for runs that resume exactly.
       axis_name: static; the mesh axis the batch is split over when the step
@@ -371,12 +435,6 @@ def train_step(
       updated, retry with a larger ``batch.capacity``).
     """
     mc, tc = state.model_config, state.train_config
-    window = batch.position.shape[1]
-    if window != mc.input_sequence_length + 1 + tc.pushforward_steps:
-        raise ValueError(
-            f"batch windows have {window} frames, expected C + 1 + pushforward_steps = "
-            f"{mc.input_sequence_length + 1 + tc.pushforward_steps}"
-        )
     normalization = state.params["normalization"]
     (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
         state.params["network"], normalization, batch, key, mc, tc, axis_name
