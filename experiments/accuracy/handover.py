@@ -1,0 +1,200 @@
+"""Where in a rollout does a model's full-rollout MSE come from? Model first, exact physics after (issue 19).
+
+Sessions 14-17 cut a model's error at 1, 10 and 100 steps by up to 21 % and moved the 494-frame mean by ~2 % at
+most. This measures why. For a hand-over step ``h``, the model rolls out (as shipped) for its first ``h`` predicted
+frames; then the exact physics takes the model's state at that frame (its centres, and velocities from a
+second-order backward difference of its last three frames) and runs the rest of the trajectory, in float64. The
+hybrid's full-rollout MSE against the truth (frames ``C ..``, normalised units, the average of ``rollout_metrics``)
+is what the model would score if it were perfect from step ``h`` on:
+
+- if the hybrid at ``h = 100`` scores about what the model scores on its own, the model's error after step 100 is
+  no worse than the physics' own sensitivity to the state it was handed, and only the first ~100 steps can be
+  improved;
+- the hybrid at small ``h`` says how much of the full-rollout MSE the first few steps alone decide;
+- with ``--scales``, the model's error up to the hand-over is scaled by ``s`` first (its frames replaced by
+  ``truth + s (model - truth)``): what a model ``1/s`` times more accurate over the first ``h`` steps, and exact
+  after them, would score (rows ``h@s``).
+
+The paper's explicit Euler step (1e-4 s) is only just stable in a settled bed: from a rare handed-over state the
+exact physics itself blows up hundreds of frames later (particles crossing the box in one frame). Such a hybrid is
+reported as ``null`` and counted under ``unstable``; a row's mean is over the others (any frame-to-frame move
+larger than the smallest radius counts: the stored truth moves at most ~half of one).
+
+The same hand-over from the true frames (``truth`` row: the same velocity estimate, no model) measures what the
+hand-over itself costs; it should sit near the chaos floor.
+
+    python experiments/accuracy/handover.py --data datasets/acc400-valid --splits valid \\
+        --models shipped=sedimentation-2d O2=experiments/accuracy/unrolled5_run --out runs/handover-valid.json
+
+writes, per model and hand-over step, every trajectory's full-rollout MSE and the mean (``--limit N``: the first N
+trajectories of each split).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dispgns import tuning
+from dispgns.data import load_dataset
+from dispgns.evaluation import predict_trajectories
+from dispgns.physics import simulate_batch
+from dispgns.pretrained import load_pretrained, shipped_models
+from dispgns.training.checkpoint import load_params
+
+HANDOVERS = (1, 10, 25, 50, 100, 200, 300)
+"""Predicted frames the model makes before the physics takes over."""
+
+
+def load(source: str):
+    """A model as shipped (mirror average, box guard), on the CPU kernels (same results, faster)."""
+    params, config, _ = load_pretrained(source) if source in shipped_models() else load_params(source)
+    config = dataclasses.replace(config, symmetrize=True, keep_inside_box=True)
+    return params, tuning.tuned_model_config(config)
+
+
+def handed_over(frames, trajectories, metadata, step):
+    """``frames[k]`` (normalised, ``(T, N, D)``) up to absolute frame ``step``, then the exact physics from there."""
+    config, half = metadata.physics_config, metadata.length_scale
+    frame_dt = metadata.save_every * config.dt
+    budget = max(f.shape[1] for f in frames)
+    dim = frames[0].shape[2]
+    count = len(frames)
+    x0 = np.zeros((count, budget, dim))
+    v0 = np.zeros_like(x0)
+    radius = np.full((count, budget), float(trajectories[0].initial_radius.min()))
+    mask = np.zeros((count, budget), bool)
+    walls = np.broadcast_to(np.asarray(config.box_half_size, float), (dim,))
+    for k, (f, traj) in enumerate(zip(frames, trajectories, strict=True)):
+        n = f.shape[1]
+        x = f[step - 2 : step + 1].astype(np.float64) * half
+        a = np.asarray(traj.initial_radius, np.float64)
+        # The physics refuses centres past a wall's contact position; the box guard keeps them within float32 of it.
+        x0[k, :n] = np.clip(x[2], -walls + a[:, None], walls - a[:, None])
+        v0[k, :n] = (3 * x[2] - 4 * x[1] + x[0]) / (2 * frame_dt)
+        radius[k, :n], mask[k, :n] = a, True
+    n_frames = frames[0].shape[0] - step
+    with jax.enable_x64(True):
+        xs = np.asarray(
+            simulate_batch(
+                jnp.asarray(x0),
+                jnp.asarray(v0),
+                jnp.asarray(radius),
+                jnp.asarray(mask),
+                config,
+                n_frames=n_frames,
+                save_every=metadata.save_every,
+                compiler_options=tuning.physics_compiler_options(),
+            )
+        )
+    return [np.concatenate([f[:step], xs[k, :, : f.shape[1]] / half]) for k, f in enumerate(frames)]
+
+
+def mse(predicted, truth, c):
+    """Full-rollout MSE over frames ``c ..`` (normalised units; the average of ``rollout_metrics``)."""
+    return float(np.mean((predicted[c:].astype(np.float64) - truth[c:].astype(np.float64)) ** 2))
+
+
+def hybrid_mse(hybrid, truth, trajectories, c):
+    """:func:`mse` of each hybrid, ``None`` where its physics blew up (a move of more than a radius in a frame)."""
+    scores = []
+    for f, t, traj in zip(hybrid, truth, trajectories, strict=True):
+        stable = np.abs(np.diff(f, axis=0)).max() <= np.min(traj.radius)
+        scores.append(mse(f, t, c) if stable else None)
+    return scores
+
+
+def summary(values):
+    """Mean over the stable hybrids and how many were not."""
+    kept = [v for v in values if v is not None]
+    return float(np.mean(kept)), len(values) - len(kept)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--splits", nargs="+", default=["test"])
+    parser.add_argument("--models", nargs="+", required=True, help="NAME=SOURCE (a shipped name, run or export)")
+    parser.add_argument("--handovers", type=int, nargs="+", default=list(HANDOVERS))
+    parser.add_argument("--scales", type=float, nargs="*", default=[], help="error scales s < 1 (rows h@s)")
+    parser.add_argument("--limit", type=int, default=None)
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+
+    metadata, splits = load_dataset(args.data, args.splits)
+    trajectories = [t for split in args.splits for t in splits[split][: args.limit]]
+    truth = [np.asarray(t.position) for t in trajectories]
+    result = {"data": args.data, "splits": args.splits, "trajectories": len(trajectories), "models": {}}
+    sources = dict(item.split("=", 1) for item in args.models)
+    for name, source in [("truth", None), *sources.items()]:
+        start = time.perf_counter()
+        if source is None:
+            frames, c = truth, None
+        else:
+            params, config = load(source)
+            c = config.input_sequence_length
+            frames = predict_trajectories(
+                params, trajectories, model_config=config, compiler_options=tuning.network_compiler_options(config)
+            )
+        c = c or 6
+        rows = {} if source is None else {"model": [mse(f, t, c) for f, t in zip(frames, truth, strict=True)]}
+        for h in args.handovers:
+            hybrid = handed_over(frames, trajectories, metadata, c - 1 + h)
+            rows[str(h)] = hybrid_mse(hybrid, truth, trajectories, c)
+            for scale in [] if source is None else args.scales:
+                scaled = [t + np.float32(scale) * (f - t) for f, t in zip(frames, truth, strict=True)]
+                hybrid = handed_over(scaled, trajectories, metadata, c - 1 + h)
+                rows[f"{h}@{scale:g}"] = hybrid_mse(hybrid, truth, trajectories, c)
+        result["models"][name] = {
+            "source": source,
+            "per_trajectory": rows,
+            "mean": {k: summary(v)[0] for k, v in rows.items()},
+            "unstable": {k: summary(v)[1] for k, v in rows.items() if summary(v)[1]},
+            "seconds": round(time.perf_counter() - start, 1),
+        }
+        print(name, {k: f"{v:.3e}" for k, v in result["models"][name]["mean"].items()}, flush=True)
+        print("  unstable:", result["models"][name]["unstable"], flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=1) + "\n")
+    tmp.replace(out)
+    plot(result, out.with_suffix(".png"))
+    print("wrote", out)
+
+
+def plot(result, path):
+    """Hybrid full-rollout MSE against the hand-over step, one line per model (its own MSE dotted)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for name, entry in result["models"].items():
+        steps = sorted(int(k) for k in entry["mean"] if k.isdigit())
+        (line,) = ax.plot(steps, [entry["mean"][str(h)] for h in steps], "o-", label=f"{name}, then exact physics")
+        if "model" in entry["mean"]:
+            ax.axhline(entry["mean"]["model"], ls=":", color=line.get_color(), label=f"{name} alone")
+    ax.set_xscale("log")
+    ax.set_xlabel("model steps before the exact physics takes over")
+    ax.set_ylabel("full-rollout MSE (normalised)")
+    ax.set_ylim(bottom=0)
+    ax.set_title(
+        f"{Path(result['data']).name} {'+'.join(result['splits'])}, {result['trajectories']} trajectories", fontsize=9
+    )
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,67 @@
+"""experiments/accuracy/handover.py: the exact physics continues a rollout from its frames, scored as evaluate does."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dispgns.data import load_dataset
+from dispgns.metrics import rollout_metrics
+
+
+@pytest.fixture(scope="module")
+def handover():
+    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / "handover.py"
+    spec = importlib.util.spec_from_file_location("handover", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def split(tiny_dataset):
+    metadata, splits = load_dataset(tiny_dataset, ["train"])
+    return metadata, splits["train"][:2]
+
+
+def test_the_physics_continues_the_frames_it_is_handed(handover, split):
+    metadata, trajectories = split
+    truth = [np.asarray(t.position) for t in trajectories]
+    step, ahead = 20, 5
+    hybrid = handover.handed_over(truth, trajectories, metadata, step)
+    for got, want in zip(hybrid, truth, strict=True):
+        assert got.shape == want.shape
+        np.testing.assert_array_equal(got[:step], want[:step])
+        np.testing.assert_allclose(got[step], want[step], atol=1e-6)
+    # The velocity read from the last three frames carries the motion on: a few frames later the continuation is
+    # far closer to the truth than one started at rest (a wrong sign, time step or frame order fails this).
+    at_rest = [np.concatenate([t[: step + 1], np.repeat(t[step : step + 1], len(t) - step - 1, 0)]) for t in truth]
+    moved = [np.abs(t[step + ahead] - t[step]).max() for t in truth]
+    assert min(moved) > 1e-3
+    for got, want, still in zip(hybrid, truth, at_rest, strict=True):
+        error = np.abs(got[step + 1 : step + ahead + 1] - want[step + 1 : step + ahead + 1]).max()
+        naive = np.abs(still[step + 1 : step + ahead + 1] - want[step + 1 : step + ahead + 1]).max()
+        assert error < 0.02 * naive
+
+
+def test_the_score_is_evaluates_full_rollout_mse(handover, split):
+    metadata, trajectories = split
+    truth = np.asarray(trajectories[0].position)
+    rng = np.random.default_rng(0)
+    predicted = truth.copy()
+    predicted[6:] += rng.normal(0, 1e-3, predicted[6:].shape).astype(np.float32)
+    expected = rollout_metrics(
+        predicted, truth, np.asarray(trajectories[0].radius), box_half_size=metadata.length_scale, input_frames=6
+    )["mse"]
+    assert handover.mse(predicted, truth, 6) == pytest.approx(expected, rel=1e-5)
+
+
+def test_a_hybrid_whose_physics_blew_up_is_left_out_and_counted(handover, split):
+    _, trajectories = split
+    truth = [np.asarray(t.position) for t in trajectories]
+    blown = [t.copy() for t in truth]
+    blown[1][40:, 3] += 0.5  # one particle jumps half the box in one frame, as in an Euler blow-up
+    scores = handover.hybrid_mse(blown, truth, trajectories, 6)
+    assert scores[0] == 0.0 and scores[1] is None
+    assert handover.summary([2e-4, None, 4e-4]) == (pytest.approx(3e-4), 1)
