@@ -13,7 +13,8 @@ is what the model would score if it were perfect from step ``h`` on:
 - the hybrid at small ``h`` says how much of the full-rollout MSE the first few steps alone decide;
 - with ``--scales``, the model's error up to the hand-over is scaled by ``s`` first (its frames replaced by
   ``truth + s (model - truth)``): what a model ``1/s`` times more accurate over the first ``h`` steps, and exact
-  after them, would score (rows ``h@s``).
+  after them, would score (rows ``h@s``). Only up to step ``--scale-until`` (100): once the model's paths have
+  parted from the truth's, a point between two unrelated configurations puts particles on top of one another.
 
 The paper's explicit Euler step (1e-4 s) is only just stable in a settled bed: from a rare handed-over state the
 exact physics itself blows up hundreds of frames later (particles crossing the box in one frame). Such a hybrid is
@@ -124,6 +125,7 @@ def main():
     parser.add_argument("--models", nargs="+", required=True, help="NAME=SOURCE (a shipped name, run or export)")
     parser.add_argument("--handovers", type=int, nargs="+", default=list(HANDOVERS))
     parser.add_argument("--scales", type=float, nargs="*", default=[], help="error scales s < 1 (rows h@s)")
+    parser.add_argument("--scale-until", type=int, default=100, help="largest hand-over step to scale")
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
@@ -148,7 +150,7 @@ def main():
         for h in args.handovers:
             hybrid = handed_over(frames, trajectories, metadata, c - 1 + h)
             rows[str(h)] = hybrid_mse(hybrid, truth, trajectories, c)
-            for scale in [] if source is None else args.scales:
+            for scale in [] if source is None or h > args.scale_until else args.scales:
                 scaled = [t + np.float32(scale) * (f - t) for f, t in zip(frames, truth, strict=True)]
                 hybrid = handed_over(scaled, trajectories, metadata, c - 1 + h)
                 rows[f"{h}@{scale:g}"] = hybrid_mse(hybrid, truth, trajectories, c)
