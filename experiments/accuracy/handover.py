@@ -28,7 +28,9 @@ hand-over itself costs; it should sit near the chaos floor.
         --models shipped=sedimentation-2d O2=experiments/accuracy/unrolled5_run --out runs/handover-valid.json
 
 writes, per model and hand-over step, every trajectory's full-rollout MSE and the mean (``--limit N``: the first N
-trajectories of each split).
+trajectories of each split). ``--pool A.json B.json ...`` (no ``--data``) pools outputs over their trajectories,
+row by row where every file has the row: mean, standard error, and the paired ratio and difference to the
+model's own MSE over the same (stable) trajectories.
 """
 
 from __future__ import annotations
@@ -118,17 +120,48 @@ def summary(values):
     return float(np.mean(kept)), len(values) - len(kept)
 
 
+def pool(results):
+    """Rows of several outputs pooled over their trajectories (see the module's docstring)."""
+    pooled = {"files": [r["data"] for r in results], "models": {}}
+    for name in results[0]["models"]:
+        if not all(name in r["models"] for r in results):
+            continue
+        tables = [r["models"][name]["per_trajectory"] for r in results]
+        rows = {}
+        for key in [k for k in tables[0] if all(k in t for t in tables)]:
+            values = [v for t in tables for v in t[key]]
+            own = [v for t in tables for v in t.get("model", [None] * len(t[key]))]
+            kept = [v for v in values if v is not None]
+            row = {"n": len(kept), "unstable": len(values) - len(kept), "mean": float(np.mean(kept))}
+            row["se"] = float(np.std(kept, ddof=1) / np.sqrt(len(kept)))
+            pairs = np.array([(v, m) for v, m in zip(values, own, strict=True) if v is not None and m is not None])
+            if key != "model" and len(pairs):
+                difference = pairs[:, 0] - pairs[:, 1]
+                row["over_model"] = float(pairs[:, 0].mean() / pairs[:, 1].mean())
+                row["paired_difference"] = float(difference.mean())
+                row["paired_se"] = float(difference.std(ddof=1) / np.sqrt(len(difference)))
+            rows[key] = row
+        pooled["models"][name] = rows
+    return pooled
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", required=True)
+    parser.add_argument("--pool", nargs="+", help="outputs of this script to pool (nothing is computed)")
+    parser.add_argument("--data")
     parser.add_argument("--splits", nargs="+", default=["test"])
-    parser.add_argument("--models", nargs="+", required=True, help="NAME=SOURCE (a shipped name, run or export)")
+    parser.add_argument("--models", nargs="+", help="NAME=SOURCE (a shipped name, run or export)")
     parser.add_argument("--handovers", type=int, nargs="+", default=list(HANDOVERS))
     parser.add_argument("--scales", type=float, nargs="*", default=[], help="error scales s < 1 (rows h@s)")
     parser.add_argument("--scale-until", type=int, default=100, help="largest hand-over step to scale")
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
+    if args.pool:
+        write(pool([json.loads(Path(p).read_text()) for p in args.pool]), Path(args.out))
+        return
+    if not args.data or not args.models:
+        parser.error("--data and --models are needed (or --pool)")
 
     metadata, splits = load_dataset(args.data, args.splits)
     trajectories = [t for split in args.splits for t in splits[split][: args.limit]]
@@ -163,12 +196,15 @@ def main():
         }
         print(name, {k: f"{v:.3e}" for k, v in result["models"][name]["mean"].items()}, flush=True)
         print("  unstable:", result["models"][name]["unstable"], flush=True)
-    out = Path(args.out)
+    write(result, Path(args.out))
+    plot(result, Path(args.out).with_suffix(".png"))
+
+
+def write(result, out):
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(result, indent=1) + "\n")
     tmp.replace(out)
-    plot(result, out.with_suffix(".png"))
     print("wrote", out)
 
 
