@@ -65,3 +65,27 @@ def test_a_hybrid_whose_physics_blew_up_is_left_out_and_counted(handover, split)
     scores = handover.hybrid_mse(blown, truth, trajectories, 6)
     assert scores[0] == 0.0 and scores[1] is None
     assert handover.summary([2e-4, None, 4e-4]) == (pytest.approx(3e-4), 1)
+
+
+def test_the_velocity_is_second_order(handover):
+    # Exact on a quadratic path (a first-order difference is off by a dt / 2 there).
+    dt, t = 1.5e-3, np.array([0.0, 1.5e-3, 3e-3])
+    path = 0.02 + 0.3 * t[:, None] - 4.9 * t[:, None] ** 2
+    np.testing.assert_allclose(handover.backward_velocity(path, dt), 0.3 - 9.8 * t[-1], rtol=1e-10)
+
+
+def test_pooling_pairs_each_row_with_the_models_own_score_on_the_same_trajectories(handover):
+    first = {
+        "data": "a",
+        "splits": ["valid"],
+        "models": {"m": {"per_trajectory": {"model": [1.0, 2.0], "10": [0.5, None]}}},
+    }
+    second = {"data": "b", "splits": ["test"], "models": {"m": {"per_trajectory": {"model": [4.0], "10": [3.0]}}}}
+    rows = handover.pool([first, second])["models"]["m"]
+    assert rows["model"]["n"] == 3 and rows["model"]["mean"] == pytest.approx(7 / 3)
+    ten = rows["10"]
+    assert ten["n"] == 2 and ten["unstable"] == 1 and ten["mean"] == pytest.approx(1.75)
+    # Paired over trajectories 1 (0.5 vs 1.0) and 3 (3.0 vs 4.0), not over the blown-up second one.
+    assert ten["over_model"] == pytest.approx(3.5 / 5.0)
+    assert ten["paired_difference"] == pytest.approx(-0.75)
+    assert ten["paired_se"] == pytest.approx(np.std([-0.5, -1.0], ddof=1) / np.sqrt(2))

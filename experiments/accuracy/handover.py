@@ -1,11 +1,11 @@
 """Where in a rollout does a model's full-rollout MSE come from? Model first, exact physics after (issue 19).
 
-Sessions 14-17 cut a model's error at 1, 10 and 100 steps by up to 21 % and moved the 494-frame mean by ~2 % at
-most. This measures why. For a hand-over step ``h``, the model rolls out (as shipped) for its first ``h`` predicted
-frames; then the exact physics takes the model's state at that frame (its centres, and velocities from a
-second-order backward difference of its last three frames) and runs the rest of the trajectory, in float64. The
-hybrid's full-rollout MSE against the truth (frames ``C ..``, normalised units, the average of ``rollout_metrics``)
-is what the model would score if it were perfect from step ``h`` on:
+Gains at 1, 10 and 100 steps have moved the 494-frame mean far less than themselves; this measures why.
+For a hand-over step ``h``, the model rolls out (as shipped) for its first ``h`` predicted frames; then the exact
+physics takes the model's state at that frame (its centres, and velocities from a second-order backward difference
+of its last three frames) and runs the rest of the trajectory, in float64. The hybrid's full-rollout MSE against the
+truth (frames ``C ..``, normalised units, the average of ``rollout_metrics``) is what the model would score if it
+were perfect from step ``h`` on:
 
 - if the hybrid at ``h = 100`` scores about what the model scores on its own, the model's error after step 100 is
   no worse than the physics' own sensitivity to the state it was handed, and only the first ~100 steps can be
@@ -18,11 +18,13 @@ is what the model would score if it were perfect from step ``h`` on:
 
 The paper's explicit Euler step (1e-4 s) is only just stable in a settled bed: from a rare handed-over state the
 exact physics itself blows up hundreds of frames later (particles crossing the box in one frame). Such a hybrid is
-reported as ``null`` and counted under ``unstable``; a row's mean is over the others (any frame-to-frame move
-larger than the smallest radius counts: the stored truth moves at most ~half of one).
+reported as ``null`` and counted under ``unstable``; a row's mean is over the others. The rule: a coordinate
+that moves more than the smallest radius in one frame (a blow-up moves particles across the box; the stored
+truth of the selection files moves at most 0.85 of one, and of all files generated so far 1.14).
 
 The same hand-over from the true frames (``truth`` row: the same velocity estimate, no model) measures what the
-hand-over itself costs; it should sit near the chaos floor.
+hand-over itself costs: 0.5-2.5e-4 in session 18, a few times the chaos floor (the velocity estimate was ~0.5 % off
+on two trajectories checked against the physics' own velocities).
 
     python experiments/accuracy/handover.py --data datasets/acc400-valid --splits valid \\
         --models shipped=sedimentation-2d O2=experiments/accuracy/unrolled5_run --out runs/handover-valid.json
@@ -40,15 +42,14 @@ import dataclasses
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dispgns import tuning
 from dispgns.data import load_dataset
-from dispgns.evaluation import predict_trajectories
-from dispgns.physics import simulate_batch
+from dispgns.evaluation import chaos_floor_trajectories, predict_trajectories
+from dispgns.metrics import rollout_mse
 from dispgns.pretrained import load_pretrained, shipped_models
 from dispgns.training.checkpoint import load_params
 
@@ -63,46 +64,50 @@ def load(source: str):
     return params, tuning.tuned_model_config(config)
 
 
+def backward_velocity(last_three, frame_dt):
+    """Velocity at the last of three frames ``frame_dt`` apart: the second-order backward difference.
+
+    ``last_three`` is ``(3, ..., D)`` positions (any length unit; the result is in that unit per second); exact
+    for a path quadratic in time.
+    """
+    x0, x1, x2 = last_three
+    return (3 * x2 - 4 * x1 + x0) / (2 * frame_dt)
+
+
 def handed_over(frames, trajectories, metadata, step):
-    """``frames[k]`` (normalised, ``(T, N, D)``) up to absolute frame ``step``, then the exact physics from there."""
-    config, half = metadata.physics_config, metadata.length_scale
-    frame_dt = metadata.save_every * config.dt
-    budget = max(f.shape[1] for f in frames)
-    dim = frames[0].shape[2]
-    count = len(frames)
-    x0 = np.zeros((count, budget, dim))
-    v0 = np.zeros_like(x0)
-    radius = np.full((count, budget), float(trajectories[0].initial_radius.min()))
-    mask = np.zeros((count, budget), bool)
-    walls = np.broadcast_to(np.asarray(config.box_half_size, float), (dim,))
-    for k, (f, traj) in enumerate(zip(frames, trajectories, strict=True)):
-        n = f.shape[1]
-        x = f[step - 2 : step + 1].astype(np.float64) * half
+    """``frames[k]`` up to absolute frame ``step``, then the exact physics (float64) from that frame's state.
+
+    ``frames`` are ``(T, N_k, D)`` normalised positions (frames ``0 .. C-1`` the inputs); returns one ``(T, N_k, D)``
+    float64 array each, ``frames[k][:step]`` followed by the physics' frames ``step .. T-1`` divided by ``L``.
+    """
+    scale = metadata.length_scale  # L in m: the stored frames are positions / L
+    config = metadata.physics_config
+    states = []
+    for f, traj in zip(frames, trajectories, strict=True):
+        x = f[step - 2 : step + 1].astype(np.float64) * scale
         a = np.asarray(traj.initial_radius, np.float64)
+        walls = np.asarray(config.half_sizes(x.shape[-1]))
         # The physics refuses centres past a wall's contact position; the box guard keeps them within float32 of it.
-        x0[k, :n] = np.clip(x[2], -walls + a[:, None], walls - a[:, None])
-        v0[k, :n] = (3 * x[2] - 4 * x[1] + x[0]) / (2 * frame_dt)
-        radius[k, :n], mask[k, :n] = a, True
-    n_frames = frames[0].shape[0] - step
-    with jax.enable_x64(True):
-        xs = np.asarray(
-            simulate_batch(
-                jnp.asarray(x0),
-                jnp.asarray(v0),
-                jnp.asarray(radius),
-                jnp.asarray(mask),
-                config,
-                n_frames=n_frames,
-                save_every=metadata.save_every,
-                compiler_options=tuning.physics_compiler_options(),
-            )
-        )
-    return [np.concatenate([f[:step], xs[k, :, : f.shape[1]] / half]) for k, f in enumerate(frames)]
+        position = np.clip(x[2], -walls + a[:, None], walls - a[:, None])
+        velocity = backward_velocity(x, metadata.frame_dt)
+        states.append(SimpleNamespace(initial_position=position, initial_velocity=velocity, initial_radius=a))
+    # The chaos floor's batched float64 physics, without its perturbation: the exact physics from each state.
+    continued = chaos_floor_trajectories(
+        states,
+        config,
+        n_frames=frames[0].shape[0] - step,
+        save_every=metadata.save_every,
+        perturbation=0.0,
+        x64=True,
+        compiler_options=tuning.physics_compiler_options(),
+        length_scale=scale,
+    )
+    return [np.concatenate([f[:step], x]) for f, x in zip(frames, continued, strict=True)]
 
 
 def mse(predicted, truth, c):
-    """Full-rollout MSE over frames ``c ..`` (normalised units; the average of ``rollout_metrics``)."""
-    return float(np.mean((predicted[c:].astype(np.float64) - truth[c:].astype(np.float64)) ** 2))
+    """Full-rollout MSE of ``(T, N, D)`` normalised positions over frames ``c ..`` (:func:`rollout_mse`)."""
+    return float(rollout_mse(predicted, truth, input_frames=c))
 
 
 def hybrid_mse(hybrid, truth, trajectories, c):
@@ -122,7 +127,7 @@ def summary(values):
 
 def pool(results):
     """Rows of several outputs pooled over their trajectories (see the module's docstring)."""
-    pooled = {"files": [r["data"] for r in results], "models": {}}
+    pooled = {"files": [{"data": r["data"], "splits": r["splits"]} for r in results], "models": {}}
     for name in results[0]["models"]:
         if not all(name in r["models"] for r in results):
             continue
@@ -154,6 +159,7 @@ def main():
     parser.add_argument("--handovers", type=int, nargs="+", default=list(HANDOVERS))
     parser.add_argument("--scales", type=float, nargs="*", default=[], help="error scales s < 1 (rows h@s)")
     parser.add_argument("--scale-until", type=int, default=100, help="largest hand-over step to scale")
+    parser.add_argument("--input-frames", type=int, default=6, help="C, the frames a model is given (the truth row's)")
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
@@ -171,14 +177,17 @@ def main():
     for name, source in [("truth", None), *sources.items()]:
         start = time.perf_counter()
         if source is None:
-            frames, c = truth, None
+            frames = truth
         else:
             params, config = load(source)
-            c = config.input_sequence_length
+            if config.input_sequence_length != args.input_frames:
+                parser.error(
+                    f"{source} takes C = {config.input_sequence_length} frames, not --input-frames {args.input_frames}"
+                )
             frames = predict_trajectories(
                 params, trajectories, model_config=config, compiler_options=tuning.network_compiler_options(config)
             )
-        c = c or 6
+        c = args.input_frames
         rows = {} if source is None else {"model": [mse(f, t, c) for f, t in zip(frames, truth, strict=True)]}
         for h in args.handovers:
             hybrid = handed_over(frames, trajectories, metadata, c - 1 + h)
