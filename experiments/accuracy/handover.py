@@ -196,11 +196,12 @@ def main():
                 scaled = [t + np.float32(scale) * (f - t) for f, t in zip(frames, truth, strict=True)]
                 hybrid = handed_over(scaled, trajectories, metadata, c - 1 + h)
                 rows[f"{h}@{scale:g}"] = hybrid_mse(hybrid, truth, trajectories, c)
+        summaries = {k: summary(v) for k, v in rows.items()}
         result["models"][name] = {
             "source": source,
             "per_trajectory": rows,
-            "mean": {k: summary(v)[0] for k, v in rows.items()},
-            "unstable": {k: summary(v)[1] for k, v in rows.items() if summary(v)[1]},
+            "mean": {k: mean for k, (mean, _) in summaries.items()},
+            "unstable": {k: unstable for k, (_, unstable) in summaries.items() if unstable},
             "seconds": round(time.perf_counter() - start, 1),
         }
         print(name, {k: f"{v:.3e}" for k, v in result["models"][name]["mean"].items()}, flush=True)
