@@ -515,3 +515,89 @@ def test_cli_rejects_unusable_radii_before_writing(tmp_path, capsys):
     assert main(base + ["--out", str(out), "--unseen-count", "0", "--radii", "0.001"]) == 2
     assert "particle indices can address" in capsys.readouterr().err
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------- stability
+
+
+def jumping_simulate_batch(jump=None, value=None, frame=7, particle=1):
+    """fake_simulate_batch, with particle ``particle`` of every trajectory displaced along y from
+    ``frame`` on by ``jump`` of the trajectory's smallest radius (or set to ``value``)."""
+    smooth = fake_simulate_batch()
+
+    def fake(x0, v0, radius, mask, config, **kwargs):
+        xs = np.array(smooth(x0, v0, radius, mask, config, **kwargs))
+        for row in range(xs.shape[0]):
+            if value is not None:
+                xs[row, frame, particle, 1] = value
+            else:
+                xs[row, frame:, particle, 1] += jump * np.min(radius[row][mask[row]])
+        return xs
+
+    return fake
+
+
+def test_largest_frame_move_by_hand():
+    position = np.zeros((5, 3, 2))
+    position[:, 0, 0] = [0.0, 0.1, 0.2, 0.3, 0.4]  # 0.1 per frame
+    position[3:, 2] = [0.3, 0.4]  # a 0.5 jump of particle 2, from frame 2 to 3
+    radius = np.array([0.5, 1.0, 0.25])
+    move, frame, particle = gen.largest_frame_move(position, radius)
+    assert (frame, particle) == (3, 2)
+    assert move == pytest.approx(0.5 / 0.25)  # in units of the smallest radius, not the mover's
+    position[4, 1, 0] = np.nan
+    assert gen.largest_frame_move(position, radius) == (math.inf, 4, 1)
+    assert gen.largest_frame_move(position[:1], radius) == (0.0, 0, 0)
+
+
+def test_a_blown_up_trajectory_refuses_the_dataset_and_leaves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", jumping_simulate_batch(jump=3.0))
+    with pytest.raises(gen.UnstableSimulationError) as error:
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=0)
+    message = str(error.value)
+    assert "train trajectory 00000: particle 1 moves 3 smallest radii between frames 6 and 7" in message
+    assert "max_frame_move = 2" in message and "dt = 0.0001 s" in message
+    assert listing(tmp_path) == []
+    monkeypatch.setattr(gen, "simulate_batch", jumping_simulate_batch(value=np.nan))
+    with pytest.raises(gen.UnstableSimulationError, match="particle 1's position is not finite at frame 7"):
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=0)
+    assert listing(tmp_path) == []
+    with pytest.raises(ValueError, match="max_frame_move must be a number > 0"):
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=0, max_frame_move=0)
+
+
+def test_a_marginal_trajectory_is_kept_with_a_warning_and_its_move_recorded(tmp_path, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", jumping_simulate_batch(jump=1.5))
+    with pytest.warns(UserWarning, match="moves 1.5 smallest radii between frames 6 and 7") as caught:
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=0)
+    assert len(caught) == 5  # one per trajectory
+    _, splits = load_dataset(tmp_path / "out")
+    for trajectory in (t for group in splits.values() for t in group):
+        assert trajectory.attrs["largest_frame_move"] == pytest.approx(1.5, rel=1e-4)
+    with pytest.raises(gen.UnstableSimulationError, match="more than max_frame_move = 1.2"):
+        generate_dataset(tiny_spec(), tmp_path / "tight", seed=0, max_frame_move=1.2)
+    assert listing(tmp_path) == ["out"]
+
+
+def test_real_trajectories_record_a_healthy_largest_move(tiny):
+    _, splits = load_dataset(tiny[0])
+    for trajectory in (t for group in splits.values() for t in group):
+        recorded = trajectory.attrs["largest_frame_move"]
+        assert 0 < recorded < gen.WARN_FRAME_MOVE
+        # The stored positions (float32, units of L) give the same move as the simulated ones (m).
+        move, _, _ = gen.largest_frame_move(trajectory.position, trajectory.radius)
+        assert move == pytest.approx(recorded, rel=1e-3)
+
+
+def test_cli_generate_stability_bound(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(gen, "simulate_batch", jumping_simulate_batch(jump=1.5))
+    out = tmp_path / "out"
+    assert main(["generate", "--preset", "tiny", "--out", str(out), "--max-frame-move", "1.2"]) == 2
+    error = capsys.readouterr().err
+    assert "dispgns generate: error: train trajectory 00000: particle 1 moves 1.5 smallest radii" in error
+    assert listing(tmp_path) == []
+    assert main(["generate", "--preset", "tiny", "--out", str(out)]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
+    assert len(warnings) == 5 and "test_unseen trajectory 00000: particle 1 moves 1.5" in warnings[-1]
+    assert main(["generate", "--preset", "tiny", "--out", str(tmp_path / "x"), "--max-frame-move", "-1"]) == 2
+    assert "--max-frame-move -1.0: expected a number of radii > 0" in capsys.readouterr().err

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 import time
+import warnings
 
 from dispgns.cli import CLIError
 from dispgns.cli._common import (
@@ -70,6 +72,15 @@ def register(subparsers) -> None:
         "groups of similar particle count are chosen automatically). In float32 the "
         "grouping changes the rounding of the chaotic dynamics: the same files need the "
         "same seed, spec and batch size (recorded in metadata.json)",
+    )
+    parser.add_argument(
+        "--max-frame-move",
+        type=float,
+        default=None,
+        metavar="R",
+        help="refuse the dataset (exit 1, nothing written) when a particle moves more than R of its trajectory's "
+        "smallest radius between two frames: the explicit Euler step blew up (default 2; healthy runs move "
+        "under ~0.7, and moves past 1 are reported as warnings; 'inf' checks only that positions are finite)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DIR")
     parser.set_defaults(func=run)
@@ -153,11 +164,15 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     from dispgns.data import DatasetError, generate_dataset
+    from dispgns.data.generate import MAX_FRAME_MOVE, UnstableSimulationError
     from dispgns.physics import PlacementError
 
     spec = build_spec(args)
     if args.batch_size is not None and args.batch_size < 1:
         raise CLIError(f"--batch-size {args.batch_size}: expected at least 1")
+    max_frame_move = MAX_FRAME_MOVE if args.max_frame_move is None else args.max_frame_move
+    if not max_frame_move > 0:
+        raise CLIError(f"--max-frame-move {args.max_frame_move}: expected a number of radii > 0")
     start = time.perf_counter()
     bars = _Bars()
     # float64 must be on before the first array of the run is made; the
@@ -166,7 +181,8 @@ def run(args: argparse.Namespace) -> int:
     check_writable_place(args.out)  # before minutes of simulation
     clean_leftovers(args.out)
     try:
-        with precision, sigterm_as_interrupt():
+        with precision, sigterm_as_interrupt(), warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", UserWarning)
             metadata = generate_dataset(
                 spec,
                 args.out,
@@ -175,13 +191,16 @@ def run(args: argparse.Namespace) -> int:
                 batch_size=args.batch_size,
                 progress=bars,
                 compiler_options=physics_options(args),
+                max_frame_move=max_frame_move,
             )
-    except (PlacementError, DatasetError, ValueError) as error:
+    except (PlacementError, DatasetError, UnstableSimulationError, ValueError) as error:
         raise CLIError(str(error)) from None
     except OSError as error:
         raise file_error(error, args.out) from None
     finally:
         bars.close()
+    for warning in caught:
+        print(f"warning: {warning.message}", file=sys.stderr)
     elapsed = time.perf_counter() - start
     counts = metadata.trajectory_counts
     particles = [n for split in metadata.splits for n in metadata.particle_counts[split]]

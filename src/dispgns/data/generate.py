@@ -26,6 +26,7 @@ import itertools
 import math
 import os
 import threading
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -34,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
 
-from dispgns.arrays import PRNGKey
+from dispgns.arrays import Positions, PRNGKey, Radii
 from dispgns.data.format import (
     SPLITS,
     DatasetMetadata,
@@ -61,13 +62,17 @@ __all__ = [
     "DatasetSpec",
     "KEY_DERIVATION",
     "LANES",
+    "MAX_FRAME_MOVE",
     "PAPER3D_DT_S",
     "PAPER3D_HALF_SIZE_M",
     "PAPER_TRAIN_RADII_M",
     "PRESETS",
     "RadiiGroup",
     "SPLIT_IDS",
+    "UnstableSimulationError",
+    "WARN_FRAME_MOVE",
     "generate_dataset",
+    "largest_frame_move",
     "paper3d_spec",
     "paper_spec",
     "plan_batches",
@@ -615,6 +620,79 @@ def plan_batches(
     return [group for _, group in sorted(zip(costs, groups), key=lambda item: -item[0])]
 
 
+# ----------------------------------------------------------------------------- stability
+
+# Explicit Euler at the paper's step is only just stable once a 2-D bed has settled: a run can
+# start to oscillate (accelerations alternating in sign from frame to frame) and within some
+# tens of frames throw particles across the box. Healthy paper-preset trajectories move a particle
+# at most ~0.5-0.7 of the smallest radius between stored frames; the onset reaches ~1-1.2.
+
+#: Default bound on any particle's move between two stored frames, in units of the trajectory's
+#: smallest radius. Past it the particle can pass through a neighbour within a frame: the run has
+#: left what the physics resolves, and generation refuses it.
+MAX_FRAME_MOVE = 2.0
+
+#: A trajectory whose largest frame-to-frame move exceeds this (in smallest radii), but not
+#: the bound, is kept with a warning: the Euler step is at its stability limit there.
+WARN_FRAME_MOVE = 1.0
+
+
+class UnstableSimulationError(RuntimeError):
+    """A simulated trajectory blew up: positions not finite, or a move past the bound."""
+
+
+def largest_frame_move(position: Positions, radius: Radii) -> tuple[float, int, int]:
+    """The largest distance any particle moves between two consecutive stored frames.
+
+    Args:
+      position: ``(T, N, D)`` centres, any length unit (host array).
+      radius: ``(N,)`` radii in the same unit.
+
+    Returns:
+      ``(move, frame, particle)``: the largest Euclidean move in units of the
+      smallest radius (``inf`` when a position is not finite), the frame it
+      ends at (the move is from ``frame - 1`` to ``frame``) and the particle.
+      ``(0.0, 0, 0)`` for fewer than two frames.
+    """
+    position = np.asarray(position, np.float64)
+    smallest = float(np.min(radius))
+    if position.shape[0] < 2 or position.shape[1] == 0:
+        return 0.0, 0, 0
+    finite = np.isfinite(position).all(axis=-1)
+    if not finite.all():
+        frame, particle = np.argwhere(~finite)[0]
+        return math.inf, int(frame), int(particle)
+    moves = np.linalg.norm(np.diff(position, axis=0), axis=-1)
+    step, particle = np.unravel_index(int(np.argmax(moves)), moves.shape)
+    return float(moves[step, particle] / smallest), int(step) + 1, int(particle)
+
+
+def _check_stability(label: str, position, radius, config: PhysicsConfig, max_frame_move: float) -> float:
+    """Raise :class:`UnstableSimulationError` past ``max_frame_move``, warn past :data:`WARN_FRAME_MOVE`;
+    return the largest move (smallest radii)."""
+    move, frame, particle = largest_frame_move(position, radius)
+    advice = (
+        f"explicit Euler with dt = {config.dt:g} s is unstable here; simulate with a smaller "
+        "PhysicsConfig.dt (and a proportionally larger save_every to keep the frame interval)"
+    )
+    if not math.isfinite(move):
+        raise UnstableSimulationError(
+            f"{label}: particle {particle}'s position is not finite at frame {frame}: {advice}"
+        )
+    where = f"{label}: particle {particle} moves {move:.3g} smallest radii between frames {frame - 1} and {frame}"
+    if move > max_frame_move:
+        raise UnstableSimulationError(
+            f"{where}, more than max_frame_move = {max_frame_move:g} (healthy runs move under ~0.7): {advice}"
+        )
+    if move > WARN_FRAME_MOVE:
+        warnings.warn(
+            f"{where} (healthy runs move under ~0.7): the Euler step is at its stability limit there; "
+            f"the trajectory is kept (the bound is max_frame_move = {max_frame_move:g})",
+            stacklevel=3,
+        )
+    return move
+
+
 class _Cancelled(Exception):
     """Raised inside a worker's progress callback to stop its simulation early."""
 
@@ -714,6 +792,7 @@ def generate_dataset(
     batch_size: int | None = None,
     progress: ProgressFn | None = None,
     compiler_options: Mapping[str, Any] | None = None,
+    max_frame_move: float = MAX_FRAME_MOVE,
 ) -> DatasetMetadata:
     """Generate the dataset ``spec`` describes into ``out_dir``; deterministic for a seed.
 
@@ -741,6 +820,12 @@ def generate_dataset(
       compiler_options: XLA options for the physics (e.g.
         :func:`dispgns.tuning.physics_compiler_options`; float32 data then
         differ from data generated without them in the last bits).
+      max_frame_move: refuse the dataset when a particle of some trajectory
+        moves more than this many of the trajectory's smallest radius between
+        two stored frames (a blown-up Euler step; see :data:`MAX_FRAME_MOVE`).
+        Past :data:`WARN_FRAME_MOVE` a :class:`UserWarning` names the
+        trajectory. Every trajectory's largest move is stored in its
+        ``attrs["largest_frame_move"]``. ``math.inf`` checks finiteness only.
 
     Returns:
       The metadata written beside the split files.
@@ -748,7 +833,10 @@ def generate_dataset(
     Raises:
       FileExistsError: ``out_dir`` holds something and ``overwrite`` is off.
       PlacementError: a requested packing cannot be placed without overlap.
-      ValueError: bad seed, or float64 without ``jax_enable_x64``.
+      UnstableSimulationError: a trajectory blew up (see ``max_frame_move``);
+        nothing is written.
+      ValueError: bad seed, ``max_frame_move`` not > 0, or float64 without
+        ``jax_enable_x64``.
       OSError: ``out_dir`` cannot be written.
     """
     if not (isinstance(seed, (int, np.integer)) and 0 <= int(seed) < 2**32):
@@ -762,6 +850,8 @@ def generate_dataset(
     dtype = np.float64 if spec.precision == "float64" else np.float32
     if batch_size is not None and batch_size < 1:
         raise ValueError(f"batch_size must be >= 1 or None, got {batch_size!r}")
+    if not (isinstance(max_frame_move, int | float) and max_frame_move > 0):
+        raise ValueError(f"max_frame_move must be a number > 0 (smallest radii per frame), got {max_frame_move!r}")
     config = spec.physics
     half = spec.length_scale  # positions and radii are stored in units of it
     items = spec.items()
@@ -785,6 +875,11 @@ def generate_dataset(
         groups = plan_batches(counts, spec.n_frames * spec.save_every, batch_size=batch_size)
         threads = thresholds().generation_threads
         positions = _simulate_groups(groups, states, spec, dtype, report, threads, compiler_options)
+        # Checked before anything is written: a blown-up run refuses the whole dataset.
+        moves = [
+            _check_stability(labels[i], positions[i], np.asarray(states[i].radius), config, max_frame_move)
+            for i in range(total)
+        ]
 
         trajectories: dict[str, list[Trajectory]] = {split: [] for split in spec.splits}
         for i, (split, index, radii) in enumerate(items):
@@ -811,6 +906,7 @@ def generate_dataset(
                         "radii_m": list(radii),
                         "start_height_m": float(state.start_height),
                         "n_particles": counts[i],
+                        "largest_frame_move": round(moves[i], 6),
                     },
                 )
             )
