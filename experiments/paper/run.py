@@ -155,6 +155,8 @@ def main() -> int:
 
     data, out = Path(args.data), Path(args.out)
     run_dir = out / "run"
+    if args.ship and args.evaluate_only and not (run_dir / "training_curve.png").is_file():
+        parser.error(f"--ship: {run_dir / 'training_curve.png'} is missing (dispgns train writes it)")
     if not args.evaluate_only:
         if not (data / "metadata.json").is_file():
             run_stage(["generate", "--preset", "paper", "--seed", str(args.seed), "--out", str(data)])
@@ -236,6 +238,9 @@ def ship(
 
     from dispgns.training.checkpoint import export_model, load_params, read_json
 
+    curve = run_dir / "training_curve.png"
+    if not curve.is_file():  # checked first: nothing is exported without it
+        sys.exit(f"{curve}: missing (dispgns train writes it); the model was not shipped")
     params, model_config, info = load_params(run_dir, best=best)
     model_config = dataclasses.replace(model_config, keep_inside_box=keep_inside_box, symmetrize=symmetrize)
     config = read_json(run_dir / "config.json", "configuration of the run")
@@ -258,7 +263,7 @@ def ship(
     record.update(extra or {})
     target = REPO / "src" / "dispgns" / "pretrained" / name
     export_model(target, params, model_config, record)
-    shutil.copyfile(run_dir / "training_curve.png", target / "training_curve.png")
+    shutil.copyfile(curve, target / "training_curve.png")
     print(f"shipped {info['source']} as {target} (keep_inside_box={keep_inside_box}, symmetrize={symmetrize})")
 
 
