@@ -540,18 +540,27 @@ def jumping_simulate_batch(jump=None, value=None, frame=7, particle=1):
 def test_largest_frame_move_by_hand():
     position = np.zeros((5, 3, 2))
     position[:, 0, 0] = [0.0, 0.1, 0.2, 0.3, 0.4]  # 0.1 per frame
-    position[3:, 2] = [0.3, 0.4]  # a 0.5 jump of particle 2, from frame 2 to 3
+    position[3:, 1] = [0.3, 0.4]  # a 0.5 jump of the largest particle, from frame 2 to 3
     radius = np.array([0.5, 1.0, 0.25])
     move, frame, particle = gen.largest_frame_move(position, radius)
-    assert (frame, particle) == (3, 2)
+    assert (frame, particle) == (3, 1)
     assert move == pytest.approx(0.5 / 0.25)  # in units of the smallest radius, not the mover's
-    position[4, 1, 0] = np.nan
-    assert gen.largest_frame_move(position, radius) == (math.inf, 4, 1)
+    position[4, 2, 0] = np.nan
+    assert gen.largest_frame_move(position, radius) == (math.inf, 4, 2)
+    assert gen.largest_frame_move(position[4:], radius) == (math.inf, 0, 2)  # one frame: still checked
     assert gen.largest_frame_move(position[:1], radius) == (0.0, 0, 0)
+    assert gen.largest_frame_move(np.zeros((5, 0, 2)), np.zeros(0)) == (0.0, 0, 0)
+    with pytest.raises(ValueError, match=r"\(T, N, D\)"):
+        gen.largest_frame_move(position[0], radius)
 
 
 def test_a_blown_up_trajectory_refuses_the_dataset_and_leaves_nothing(tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "simulate_batch", jumping_simulate_batch(jump=3.0))
+
+    def written(*args, **kwargs):
+        raise AssertionError("a split was written before every trajectory was checked")
+
+    monkeypatch.setattr(gen, "write_split", written)
     with pytest.raises(gen.UnstableSimulationError) as error:
         generate_dataset(tiny_spec(), tmp_path / "out", seed=0)
     message = str(error.value)
@@ -562,14 +571,16 @@ def test_a_blown_up_trajectory_refuses_the_dataset_and_leaves_nothing(tmp_path, 
     with pytest.raises(gen.UnstableSimulationError, match="particle 1's position is not finite at frame 7"):
         generate_dataset(tiny_spec(), tmp_path / "out", seed=0)
     assert listing(tmp_path) == []
-    with pytest.raises(ValueError, match="max_frame_move must be a number > 0"):
-        generate_dataset(tiny_spec(), tmp_path / "out", seed=0, max_frame_move=0)
+    for bad in (0, -1.0, math.nan, True, "2"):
+        with pytest.raises(ValueError, match="max_frame_move must be a number > 0"):
+            generate_dataset(tiny_spec(), tmp_path / "out", seed=0, max_frame_move=bad)
 
 
 def test_a_marginal_trajectory_is_kept_with_a_warning_and_its_move_recorded(tmp_path, monkeypatch):
     monkeypatch.setattr(gen, "simulate_batch", jumping_simulate_batch(jump=1.5))
-    with pytest.warns(UserWarning, match="moves 1.5 smallest radii between frames 6 and 7") as caught:
-        generate_dataset(tiny_spec(), tmp_path / "out", seed=0)
+    with pytest.warns(gen.FrameMoveWarning, match="moves 1.5 smallest radii between frames 6 and 7") as caught:
+        generate_dataset(tiny_spec(), tmp_path / "out", seed=0, max_frame_move=np.float32(2))
+    assert all(warning.filename == __file__ for warning in caught)  # attributed to the caller
     assert len(caught) == 5  # one per trajectory
     _, splits = load_dataset(tmp_path / "out")
     for trajectory in (t for group in splits.values() for t in group):

@@ -17,6 +17,7 @@ from dispgns.data.formats import export_trajectories, import_trajectory_files
 from dispgns.data.generate import (
     PRESETS,
     DatasetSpec,
+    FrameMoveWarning,
     RadiiGroup,
     UnstableSimulationError,
     generate_dataset,
@@ -45,6 +46,7 @@ __all__ = [
     "write_split",
     "PRESETS",
     "DatasetSpec",
+    "FrameMoveWarning",
     "RadiiGroup",
     "UnstableSimulationError",
     "generate_dataset",

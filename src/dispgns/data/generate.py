@@ -24,6 +24,7 @@ import concurrent.futures
 import dataclasses
 import itertools
 import math
+import numbers
 import os
 import threading
 import warnings
@@ -69,6 +70,7 @@ __all__ = [
     "PRESETS",
     "RadiiGroup",
     "SPLIT_IDS",
+    "FrameMoveWarning",
     "UnstableSimulationError",
     "WARN_FRAME_MOVE",
     "generate_dataset",
@@ -625,7 +627,7 @@ def plan_batches(
 # Explicit Euler at the paper's step is only just stable once a 2-D bed has settled: a run can
 # start to oscillate (accelerations alternating in sign from frame to frame) and within some
 # tens of frames throw particles across the box. Healthy paper-preset trajectories move a particle
-# at most ~0.5-0.7 of the smallest radius between stored frames; the onset reaches ~1-1.2.
+# at most ~0.5-0.9 of the smallest radius between stored frames; the onset reaches ~1-1.2.
 
 #: Default bound on any particle's move between two stored frames, in units of the trajectory's
 #: smallest radius. Past it the particle can pass through a neighbour within a frame: the run has
@@ -641,6 +643,10 @@ class UnstableSimulationError(RuntimeError):
     """A simulated trajectory blew up: positions not finite, or a move past the bound."""
 
 
+class FrameMoveWarning(UserWarning):
+    """A kept trajectory moves a particle more than :data:`WARN_FRAME_MOVE` smallest radii in a frame."""
+
+
 def largest_frame_move(position: Positions, radius: Radii) -> tuple[float, int, int]:
     """The largest distance any particle moves between two consecutive stored frames.
 
@@ -650,18 +656,21 @@ def largest_frame_move(position: Positions, radius: Radii) -> tuple[float, int, 
 
     Returns:
       ``(move, frame, particle)``: the largest Euclidean move in units of the
-      smallest radius (``inf`` when a position is not finite), the frame it
-      ends at (the move is from ``frame - 1`` to ``frame``) and the particle.
-      ``(0.0, 0, 0)`` for fewer than two frames.
+      smallest radius, the frame it ends at (the move is from ``frame - 1``
+      to ``frame``) and the particle; ``(inf, frame, particle)`` at the first
+      position that is not finite; ``(0.0, 0, 0)`` for fewer than two frames
+      or no particles.
     """
     position = np.asarray(position, np.float64)
-    smallest = float(np.min(radius))
-    if position.shape[0] < 2 or position.shape[1] == 0:
-        return 0.0, 0, 0
+    if position.ndim != 3:
+        raise ValueError(f"position must be (T, N, D), got shape {position.shape}")
     finite = np.isfinite(position).all(axis=-1)
     if not finite.all():
         frame, particle = np.argwhere(~finite)[0]
         return math.inf, int(frame), int(particle)
+    if position.shape[0] < 2 or position.shape[1] == 0:
+        return 0.0, 0, 0
+    smallest = float(np.min(radius))
     moves = np.linalg.norm(np.diff(position, axis=0), axis=-1)
     step, particle = np.unravel_index(int(np.argmax(moves)), moves.shape)
     return float(moves[step, particle] / smallest), int(step) + 1, int(particle)
@@ -672,8 +681,9 @@ def _check_stability(label: str, position, radius, config: PhysicsConfig, max_fr
     return the largest move (smallest radii)."""
     move, frame, particle = largest_frame_move(position, radius)
     advice = (
-        f"explicit Euler with dt = {config.dt:g} s is unstable here; simulate with a smaller "
-        "PhysicsConfig.dt (and a proportionally larger save_every to keep the frame interval)"
+        f"explicit Euler with dt = {config.dt:g} s is unstable here. Generate with a smaller step "
+        "(DatasetSpec.physics.dt, save_every raised to keep the frame interval), or another seed; "
+        "max_frame_move (--max-frame-move) keeps such trajectories"
     )
     if not math.isfinite(move):
         raise UnstableSimulationError(
@@ -682,13 +692,14 @@ def _check_stability(label: str, position, radius, config: PhysicsConfig, max_fr
     where = f"{label}: particle {particle} moves {move:.3g} smallest radii between frames {frame - 1} and {frame}"
     if move > max_frame_move:
         raise UnstableSimulationError(
-            f"{where}, more than max_frame_move = {max_frame_move:g} (healthy runs move under ~0.7): {advice}"
+            f"{where}, more than max_frame_move = {max_frame_move:g} (healthy runs stay under ~0.9): {advice}"
         )
     if move > WARN_FRAME_MOVE:
         warnings.warn(
-            f"{where} (healthy runs move under ~0.7): the Euler step is at its stability limit there; "
+            f"{where} (healthy runs stay under ~0.9): the Euler step is at its stability limit there; "
             f"the trajectory is kept (the bound is max_frame_move = {max_frame_move:g})",
-            stacklevel=3,
+            FrameMoveWarning,
+            stacklevel=3,  # the caller of generate_dataset
         )
     return move
 
@@ -823,9 +834,10 @@ def generate_dataset(
       max_frame_move: refuse the dataset when a particle of some trajectory
         moves more than this many of the trajectory's smallest radius between
         two stored frames (a blown-up Euler step; see :data:`MAX_FRAME_MOVE`).
-        Past :data:`WARN_FRAME_MOVE` a :class:`UserWarning` names the
+        Past :data:`WARN_FRAME_MOVE` a :class:`FrameMoveWarning` names the
         trajectory. Every trajectory's largest move is stored in its
-        ``attrs["largest_frame_move"]``. ``math.inf`` checks finiteness only.
+        ``attrs["largest_frame_move"]``. With ``math.inf`` only positions
+        that are not finite refuse the dataset (the warning still applies).
 
     Returns:
       The metadata written beside the split files.
@@ -850,7 +862,7 @@ def generate_dataset(
     dtype = np.float64 if spec.precision == "float64" else np.float32
     if batch_size is not None and batch_size < 1:
         raise ValueError(f"batch_size must be >= 1 or None, got {batch_size!r}")
-    if not (isinstance(max_frame_move, int | float) and max_frame_move > 0):
+    if isinstance(max_frame_move, bool) or not (isinstance(max_frame_move, numbers.Real) and max_frame_move > 0):
         raise ValueError(f"max_frame_move must be a number > 0 (smallest radii per frame), got {max_frame_move!r}")
     config = spec.physics
     half = spec.length_scale  # positions and radii are stored in units of it
@@ -876,10 +888,11 @@ def generate_dataset(
         threads = thresholds().generation_threads
         positions = _simulate_groups(groups, states, spec, dtype, report, threads, compiler_options)
         # Checked before anything is written: a blown-up run refuses the whole dataset.
-        moves = [
-            _check_stability(labels[i], positions[i], np.asarray(states[i].radius), config, max_frame_move)
-            for i in range(total)
-        ]
+        moves = []
+        for i in range(total):  # a loop, not a comprehension: the warnings' stacklevel counts frames
+            moves.append(
+                _check_stability(labels[i], positions[i], np.asarray(states[i].radius), config, max_frame_move)
+            )
 
         trajectories: dict[str, list[Trajectory]] = {split: [] for split in spec.splits}
         for i, (split, index, radii) in enumerate(items):
