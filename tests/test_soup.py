@@ -96,30 +96,40 @@ def ensemble():
     return _experiment("ensemble")
 
 
-def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(ensemble, tmp_path):
+def _graph_inputs(config, seed=0):
+    rng = np.random.default_rng(seed)
+    nodes = rng.normal(size=(5, config.node_feature_size)).astype(np.float32)
+    edges = rng.normal(size=(6, config.edge_feature_size)).astype(np.float32)
+    return nodes, edges, np.array([1, 2, 0, 3, 4, 2]), np.array([0, 0, 1, 2, 3, 4])
+
+
+@pytest.mark.parametrize("widths", [(8, 8), (8, 16)], ids=["one width: stacked", "two widths: one by one"])
+def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(ensemble, tmp_path, widths):
     from dispgns.cli import CLIError
     from dispgns.model import apply_network
 
-    config = ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1)
-    a, b = _export(tmp_path / "a", 0, config), _export(tmp_path / "b", 1, config)
-    params, got_config, info = ensemble.ensemble([a, b])
+    config = ModelConfig(latent_size=8, hidden_size=widths[0], message_passing_steps=1)
+    a = _export(tmp_path / "a", 0, config)
+    b = _export(tmp_path / "b", 1, dataclasses.replace(config, hidden_size=widths[1]))
+    params, got_config, info, shapes = ensemble.ensemble([a, b])
     assert got_config == config and info["ensemble"] == [a, b] and info["source"] == f"ensemble of {a} + {b}"
-    rng = np.random.default_rng(0)
-    nodes = rng.normal(size=(5, config.node_feature_size)).astype(np.float32)
-    edges = rng.normal(size=(6, config.edge_feature_size)).astype(np.float32)
-    senders, receivers = np.array([1, 2, 0, 3, 4, 2]), np.array([0, 0, 1, 2, 3, 4])
-    mean = ensemble.mean_of_members(apply_network)(params["network"], nodes, edges, senders, receivers,
-                                                   model_config=config)  # fmt: skip
-    outputs = [apply_network(load_model(m)[0]["network"], nodes, edges, senders, receivers, model_config=config)
-               for m in (a, b)]  # fmt: skip
+    # Members of one shape are stacked (one vmapped network); of two, each runs with its own widths.
+    assert shapes is None if widths[0] == widths[1] else [s["hidden_size"] for s in shapes] == list(widths)
+    inputs = _graph_inputs(config)
+    network = ensemble.mean_of_members(apply_network, shapes)
+    mean = network(params["network"], *inputs, model_config=config)
+    outputs = [apply_network(load_model(m)[0]["network"], *inputs, model_config=load_model(m)[1]) for m in (a, b)]
     assert not np.allclose(outputs[0], outputs[1])
     np.testing.assert_allclose(mean, (outputs[0] + outputs[1]) / 2, rtol=1e-5, atol=1e-6)
+    jitted = jax.jit(lambda networks, *graph: network(networks, *graph, model_config=config))
+    np.testing.assert_allclose(jitted(params["network"], *inputs), mean, rtol=1e-5, atol=1e-6)
     other = _export(tmp_path / "other", 2, config, {**NORM, "velocity_std": np.full(2, 0.07)})
     with pytest.raises(CLIError, match="normalisation differs"):
         ensemble.ensemble([a, other])
-    deeper = _export(tmp_path / "deeper", 3, dataclasses.replace(config, message_passing_steps=2))
+    # Shapes may differ; what the network sees (features, graph) may not.
+    other_graph = _export(tmp_path / "radius", 3, dataclasses.replace(config, connectivity_radius=0.1))
     with pytest.raises(CLIError, match="model configuration differs"):
-        ensemble.ensemble([a, deeper])
+        ensemble.ensemble([a, other_graph])
 
 
 def test_ensemble_of_one_model_twice_evaluates_as_that_model_with_evaluates_flags(

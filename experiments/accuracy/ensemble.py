@@ -4,7 +4,9 @@ The mirror average (track E) is a two-member ensemble of one network and cut the
 this checks whether members with other weights add to it. Each member runs with the first member's configuration
 (as shipped: mirror average, box guard; `--symmetrize`/`--keep-inside-box` change it as for one model), on one
 normalisation (checked: the members must come from one fine-tuning lineage), and the mean of their outputs replaces
-the network's. `dispgns evaluate` does the rest; its arguments follow the members:
+the network's. Members may differ in their network's shape (``SHAPE_FIELDS``, e.g. track L's hidden width 128 beside
+track O3's 64; session 20): each then runs with its own widths. `dispgns evaluate` does the rest; its arguments
+follow the members:
 
     python experiments/accuracy/ensemble.py sedimentation-2d,experiments/accuracy/pushforward3_run:best \\
         --data datasets/acc400 --splits valid --no-chaos --no-statistics --out runs/ensemble-valid
@@ -16,6 +18,7 @@ the ensemble as their model. An experiment, not a feature: the mean is put in pl
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import sys
 from pathlib import Path
@@ -36,21 +39,51 @@ def _soup():
     return module
 
 
+# The fields in which members may differ: they change the parameters' shapes, not the features or the graph.
+SHAPE_FIELDS = ("latent_size", "hidden_layers", "hidden_size", "message_passing_steps")
+
+
+def _shape(config) -> dict:
+    return {field: getattr(config, field) for field in SHAPE_FIELDS}
+
+
 def ensemble(members: list[str]):
-    """``(params, model_config, info)`` whose ``params["network"]`` stacks the members' networks on axis 0."""
-    loaded = _soup().load_lineage(members)
+    """``(params, model_config, info, shapes)``: ``params["network"]`` stacks the members' networks on axis 0.
+
+    When the members' networks differ in shape, ``params["network"]`` is instead the tuple of them and ``shapes``
+    the tuple of each member's :data:`SHAPE_FIELDS` (``None`` when stacked).
+    """
+    soup = _soup()
+    loaded = [soup.load(member) for member in members]
     first, config, info = loaded[0]
-    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *[p["network"] for p, _, _ in loaded])
+    # One lineage in all but the shape fields: compared as if every member had the first's.
+    soup.check_lineage(members, [(p, dataclasses.replace(c, **_shape(config)), i) for p, c, i in loaded])
+    shapes = tuple(_shape(c) for _, c, _ in loaded)
+    networks = [p["network"] for p, _, _ in loaded]
+    if all(shape == shapes[0] for shape in shapes):
+        network, shapes = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *networks), None
+    else:
+        network = tuple(networks)
     sources = [member_info.get("source", member) for member, (_, _, member_info) in zip(members, loaded, strict=True)]
     info = dict(info, source="ensemble of " + " + ".join(sources), ensemble=sources)
-    return {"network": stacked, "normalization": first["normalization"]}, config, info
+    return {"network": network, "normalization": first["normalization"]}, config, info, shapes
 
 
-def mean_of_members(single):
-    """``single`` (:func:`dispgns.model.apply_network`) turned into the mean over networks stacked on axis 0."""
+def mean_of_members(single, shapes=None):
+    """``single`` (:func:`dispgns.model.apply_network`) turned into the mean over the members' networks.
+
+    ``shapes`` ``None``: the networks are stacked on axis 0 (one vmapped network); else a tuple of networks, each run
+    with the caller's configuration and its own :data:`SHAPE_FIELDS`.
+    """
 
     def network(networks, *args, model_config):
-        return jax.vmap(lambda one: single(one, *args, model_config=model_config))(networks).mean(axis=0)
+        if shapes is None:
+            return jax.vmap(lambda one: single(one, *args, model_config=model_config))(networks).mean(axis=0)
+        outputs = [
+            single(one, *args, model_config=dataclasses.replace(model_config, **shape))
+            for one, shape in zip(networks, shapes, strict=True)
+        ]
+        return sum(outputs) / len(outputs)
 
     return network
 
@@ -60,11 +93,11 @@ def main_ensemble(argv: list[str]) -> int:
         print(__doc__, file=sys.stderr)
         return 2
     try:
-        params, config, info = ensemble(argv[0].split(","))
+        params, config, info, shapes = ensemble(argv[0].split(","))
     except CLIError as error:
         print(f"ensemble.py: {error}", file=sys.stderr)
         return 2
-    simulator.apply_network = mean_of_members(simulator.apply_network)
+    simulator.apply_network = mean_of_members(simulator.apply_network, shapes)
     # The model reader only: `evaluate`'s --symmetrize, --keep-inside-box and speed settings still apply.
     cli_common._load = lambda args, dim=2: (params, config, info)
     return main(["evaluate", *argv[1:]])

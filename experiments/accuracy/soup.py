@@ -38,6 +38,12 @@ def _network_fields(config) -> dict:
 def load_lineage(sources: list[str]) -> list:
     """``[(params, model_config, info)]`` of ``sources``; :class:`CLIError` unless one network on one dataset."""
     loaded = [load(source) for source in sources]
+    check_lineage(sources, loaded)
+    return loaded
+
+
+def check_lineage(sources: list[str], loaded: list) -> None:
+    """:class:`CLIError` unless ``loaded`` (as :func:`load_lineage` returns) is one network on one dataset."""
     first_params, first_config, _ = loaded[0]
     for source, (params, config, _) in zip(sources[1:], loaded[1:], strict=True):
         if _network_fields(config) != _network_fields(first_config):
@@ -49,7 +55,6 @@ def load_lineage(sources: list[str]) -> list:
         )
         if max(jax.tree_util.tree_leaves(gaps)) > 1e-6:
             raise CLIError(f"{source}: its normalisation differs from {sources[0]}'s (another dataset)")
-    return loaded
 
 
 def main(argv: list[str] | None = None) -> int:
