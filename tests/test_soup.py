@@ -1,4 +1,4 @@
-"""experiments/accuracy/soup.py: the weight average of exported models, refused across datasets or architectures."""
+"""experiments/accuracy/soup.py and ensemble.py: weight averages (one dataset, one architecture) and ensembles."""
 
 import dataclasses
 import importlib.util
@@ -103,18 +103,26 @@ def _graph_inputs(config, seed=0):
     return nodes, edges, np.array([1, 2, 0, 3, 4, 2]), np.array([0, 0, 1, 2, 3, 4])
 
 
-@pytest.mark.parametrize("widths", [(8, 8), (8, 16)], ids=["one width: stacked", "two widths: one by one"])
-def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(ensemble, tmp_path, widths):
+@pytest.mark.parametrize(
+    ("field", "values"),
+    [("hidden_size", (8, 8)), ("hidden_size", (8, 16)), ("message_passing_steps", (1, 2))],
+    ids=["one shape: stacked", "two widths: one by one", "two depths: one by one"],
+)
+def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(ensemble, tmp_path, field, values):
     from dispgns.cli import CLIError
     from dispgns.model import apply_network
 
-    config = ModelConfig(latent_size=8, hidden_size=widths[0], message_passing_steps=1)
+    base = ModelConfig(latent_size=8, hidden_size=8, message_passing_steps=1)
+    config = dataclasses.replace(base, **{field: values[0]})
     a = _export(tmp_path / "a", 0, config)
-    b = _export(tmp_path / "b", 1, dataclasses.replace(config, hidden_size=widths[1]))
+    b = _export(tmp_path / "b", 1, dataclasses.replace(config, **{field: values[1]}))
     params, got_config, info, shapes = ensemble.ensemble([a, b])
     assert got_config == config and info["ensemble"] == [a, b] and info["source"] == f"ensemble of {a} + {b}"
-    # Members of one shape are stacked (one vmapped network); of two, each runs with its own widths.
-    assert shapes is None if widths[0] == widths[1] else [s["hidden_size"] for s in shapes] == list(widths)
+    # Members of one shape are stacked (one vmapped network); of two, each runs with its own shape.
+    if values[0] == values[1]:
+        assert shapes is None and "ensemble_shapes" not in info
+    else:
+        assert [s[field] for s in shapes] == list(values) and info["ensemble_shapes"] == list(shapes)
     inputs = _graph_inputs(config)
     network = ensemble.mean_of_members(apply_network, shapes)
     mean = network(params["network"], *inputs, model_config=config)

@@ -1,12 +1,12 @@
 """Score a prediction ensemble: every step's acceleration is the mean of several models' (issue 19, track G).
 
 The mirror average (track E) is a two-member ensemble of one network and cut the validation rollout MSE by 13 %;
-this checks whether members with other weights add to it. Each member runs with the first member's configuration
+this checks whether members with other weights add to it. Each member runs with the first member's settings
 (as shipped: mirror average, box guard; `--symmetrize`/`--keep-inside-box` change it as for one model), on one
 normalisation (checked: the members must come from one fine-tuning lineage), and the mean of their outputs replaces
-the network's. Members may differ in their network's shape (``SHAPE_FIELDS``, e.g. track L's hidden width 128 beside
-track O3's 64; session 20): each then runs with its own widths. `dispgns evaluate` does the rest; its arguments
-follow the members:
+the network's. Members may differ in their network's shape (``SHAPE_FIELDS``, e.g. track L's hidden width 128
+beside track O3's 64; session 20): each then runs with its own shape. `dispgns evaluate` does the rest; its
+arguments follow the members:
 
     python experiments/accuracy/ensemble.py sedimentation-2d,experiments/accuracy/pushforward3_run:best \\
         --data datasets/acc400 --splits valid --no-chaos --no-statistics --out runs/ensemble-valid
@@ -66,6 +66,8 @@ def ensemble(members: list[str]):
         network = tuple(networks)
     sources = [member_info.get("source", member) for member, (_, _, member_info) in zip(members, loaded, strict=True)]
     info = dict(info, source="ensemble of " + " + ".join(sources), ensemble=sources)
+    if shapes is not None:  # the configuration returned is the first member's: record every member's shape
+        info["ensemble_shapes"] = list(shapes)
     return {"network": network, "normalization": first["normalization"]}, config, info, shapes
 
 
