@@ -140,24 +140,49 @@ def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(en
         ensemble.ensemble([a, other_graph])
 
 
-def test_ensemble_of_one_model_twice_evaluates_as_that_model_with_evaluates_flags(
-    ensemble, tiny_dataset, tiny_model_config, tmp_path, monkeypatch
+@pytest.mark.parametrize("second", ["itself", "itself widened"])
+def test_ensemble_of_a_model_and_an_equivalent_one_evaluates_as_that_model_with_evaluates_flags(
+    ensemble, tiny_dataset, tiny_model_config, tmp_path, second
 ):
     import json
 
     import dispgns.cli._common as cli_common
     import dispgns.simulator as simulator
     from dispgns.cli import main
+    from dispgns.model import grow_network
 
-    # What main_ensemble replaces for its process is put back after this test.
-    monkeypatch.setattr(simulator, "apply_network", simulator.apply_network)
-    monkeypatch.setattr(cli_common, "_load", cli_common._load)
+    replaced = simulator.apply_network, cli_common._load  # by main_ensemble while it runs, and put back after
     model = _export(tmp_path / "m", 0, tiny_model_config)
+    other = model
+    if second == "itself widened":
+        # Net2Net growth computes what the model computes with twice the hidden width: the ensemble then takes the
+        # path of members of two shapes (each run with its own), and must still evaluate as the model.
+        params, config = load_model(model)[:2]
+        wide = dataclasses.replace(config, hidden_size=2 * config.hidden_size)
+        grown = dict(params, network=grow_network(jax.random.key(1), params["network"], config, wide))
+        export_model(tmp_path / "wide", grown, wide, {"steps": 0})
+        other = str(tmp_path / "wide")
     args = ["--data", str(tiny_dataset), "--splits", "valid", "--no-chaos", "--no-statistics", "--symmetrize"]
     assert main(["evaluate", "--model", model, *args, "--out", str(tmp_path / "one")]) == 0
-    assert ensemble.main_ensemble([f"{model},{model}", *args, "--out", str(tmp_path / "two")]) == 0
+    assert ensemble.main_ensemble([f"{model},{other}", *args, "--out", str(tmp_path / "two")]) == 0
+    assert (simulator.apply_network, cli_common._load) == replaced
     one, two = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("one", "two"))
-    assert two["model"]["source"] == f"ensemble of {model} + {model}"
+    assert two["model"]["source"] == f"ensemble of {model} + {other}"
+    # metrics.json names every member with its network's shape and training record.
+    members = two["model"]["record"]["ensemble"]
+    assert [m["source"] for m in members] == [model, other]
+    assert [m["record"] for m in members] == [{"steps": 0}, {"steps": 0}]
+    widths = [tiny_model_config.hidden_size] * 2
+    if second == "itself widened":
+        widths[1] *= 2
+    assert [m["shape"]["hidden_size"] for m in members] == widths
     # --symmetrize reached the ensemble (without it the rollouts differ: the tiny model is not mirror-symmetric).
     mse = [m["splits"]["valid"]["summary"]["mse"]["mean"] for m in (one, two)]
     np.testing.assert_allclose(mse[1], mse[0], rtol=1e-4)
+    if second == "itself widened":  # and the wide member is used: widened from other weights, it changes the result
+        params = load_model(_export(tmp_path / "b", 1, tiny_model_config))[0]
+        grown = dict(params, network=grow_network(jax.random.key(1), params["network"], config, wide))
+        export_model(tmp_path / "wide-b", grown, wide, {"steps": 1})
+        assert ensemble.main_ensemble([f"{model},{tmp_path / 'wide-b'}", *args, "--out", str(tmp_path / "ab")]) == 0
+        ab = json.loads((tmp_path / "ab" / "metrics.json").read_text())
+        assert not np.isclose(ab["splits"]["valid"]["summary"]["mse"]["mean"], mse[0], rtol=1e-3)

@@ -13,7 +13,7 @@ arguments follow the members:
 
 A member is read as ``dispgns evaluate --model`` reads it (``RUN:best`` = ``--model RUN --best``); the outputs name
 the ensemble as their model. An experiment, not a feature: the mean is put in place of
-`dispgns.simulator.apply_network` for this process only.
+`dispgns.simulator.apply_network` while `main_ensemble` runs.
 """
 
 from __future__ import annotations
@@ -65,7 +65,14 @@ def ensemble(members: list[str]):
     else:
         network = tuple(networks)
     sources = [member_info.get("source", member) for member, (_, _, member_info) in zip(members, loaded, strict=True)]
-    info = dict(info, source="ensemble of " + " + ".join(sources), ensemble=sources)
+    # `evaluate` writes the model's source, configuration (the first member's) and record to metrics.json: the record
+    # names every member, with its network's shape and its own training record.
+    members_record = [
+        {"source": source, "shape": _shape(c), "record": member_info.get("record", {})}
+        for source, (_, c, member_info) in zip(sources, loaded, strict=True)
+    ]
+    source = "ensemble of " + " + ".join(sources)
+    info = dict(info, source=source, ensemble=sources, record={"ensemble": members_record})
     if shapes is not None:  # the configuration returned is the first member's: record every member's shape
         info["ensemble_shapes"] = list(shapes)
     return {"network": network, "normalization": first["normalization"]}, config, info, shapes
@@ -99,10 +106,15 @@ def main_ensemble(argv: list[str]) -> int:
     except CLIError as error:
         print(f"ensemble.py: {error}", file=sys.stderr)
         return 2
-    simulator.apply_network = mean_of_members(simulator.apply_network, shapes)
+    # Replaced for this evaluation only: the next ensemble in this process reads its members with the real reader.
+    saved = simulator.apply_network, cli_common._load
+    simulator.apply_network = mean_of_members(saved[0], shapes)
     # The model reader only: `evaluate`'s --symmetrize, --keep-inside-box and speed settings still apply.
     cli_common._load = lambda args, dim=2: (params, config, info)
-    return main(["evaluate", *argv[1:]])
+    try:
+        return main(["evaluate", *argv[1:]])
+    finally:
+        simulator.apply_network, cli_common._load = saved
 
 
 if __name__ == "__main__":
