@@ -142,7 +142,7 @@ def test_the_ensemble_predicts_the_mean_of_its_members_and_refuses_other_data(en
 
 @pytest.mark.parametrize("second", ["itself", "itself widened"])
 def test_ensemble_of_a_model_and_an_equivalent_one_evaluates_as_that_model_with_evaluates_flags(
-    ensemble, tiny_dataset, tiny_model_config, tmp_path, second
+    ensemble, tiny_dataset, tiny_model_config, tmp_path, monkeypatch, second
 ):
     import json
 
@@ -152,6 +152,9 @@ def test_ensemble_of_a_model_and_an_equivalent_one_evaluates_as_that_model_with_
     from dispgns.model import grow_network
 
     replaced = simulator.apply_network, cli_common._load  # by main_ensemble while it runs, and put back after
+    # (put back after this test too, should main_ensemble fail to: the later tests must not run with its replacements)
+    monkeypatch.setattr(simulator, "apply_network", simulator.apply_network)
+    monkeypatch.setattr(cli_common, "_load", cli_common._load)
     model = _export(tmp_path / "m", 0, tiny_model_config)
     other = model
     if second == "itself widened":
@@ -160,7 +163,7 @@ def test_ensemble_of_a_model_and_an_equivalent_one_evaluates_as_that_model_with_
         params, config = load_model(model)[:2]
         wide = dataclasses.replace(config, hidden_size=2 * config.hidden_size)
         grown = dict(params, network=grow_network(jax.random.key(1), params["network"], config, wide))
-        export_model(tmp_path / "wide", grown, wide, {"steps": 0})
+        export_model(tmp_path / "wide", grown, wide, {"steps": 0, "grown": True})
         other = str(tmp_path / "wide")
     args = ["--data", str(tiny_dataset), "--splits", "valid", "--no-chaos", "--no-statistics", "--symmetrize"]
     assert main(["evaluate", "--model", model, *args, "--out", str(tmp_path / "one")]) == 0
@@ -171,10 +174,10 @@ def test_ensemble_of_a_model_and_an_equivalent_one_evaluates_as_that_model_with_
     # metrics.json names every member with its network's shape and training record.
     members = two["model"]["record"]["ensemble"]
     assert [m["source"] for m in members] == [model, other]
-    assert [m["record"] for m in members] == [{"steps": 0}, {"steps": 0}]
-    widths = [tiny_model_config.hidden_size] * 2
+    records, widths = [{"steps": 0}] * 2, [tiny_model_config.hidden_size] * 2
     if second == "itself widened":
-        widths[1] *= 2
+        records[1], widths[1] = {"steps": 0, "grown": True}, 2 * widths[1]
+    assert [m["record"] for m in members] == records
     assert [m["shape"]["hidden_size"] for m in members] == widths
     # --symmetrize reached the ensemble (without it the rollouts differ: the tiny model is not mirror-symmetric).
     mse = [m["splits"]["valid"]["summary"]["mse"]["mean"] for m in (one, two)]

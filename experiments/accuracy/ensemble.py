@@ -13,7 +13,8 @@ arguments follow the members:
 
 A member is read as ``dispgns evaluate --model`` reads it (``RUN:best`` = ``--model RUN --best``); the outputs name
 the ensemble as their model. An experiment, not a feature: the mean is put in place of
-`dispgns.simulator.apply_network` while `main_ensemble` runs.
+`dispgns.simulator.apply_network`, and `dispgns.cli._common._load` returns the ensemble, while `main_ensemble`
+runs; both are put back after.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def ensemble(members: list[str]):
     ]
     source = "ensemble of " + " + ".join(sources)
     info = dict(info, source=source, ensemble=sources, record={"ensemble": members_record})
-    if shapes is not None:  # the configuration returned is the first member's: record every member's shape
+    if shapes is not None:  # for callers (the configuration returned is the first member's); metrics.json: `record`
         info["ensemble_shapes"] = list(shapes)
     return {"network": network, "normalization": first["normalization"]}, config, info, shapes
 
