@@ -5,6 +5,7 @@ Every case fails before anything is compiled, so the whole table runs in a few s
 """
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -898,3 +899,19 @@ def test_an_output_below_a_file_is_one_line_naming_the_output_before_any_work(co
     (line,) = [line for line in err.splitlines() if "error:" in line]
     assert f"cannot write to {out}" in line and ".tmp" not in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux reports the umask in /proc/self/status")
+def test_written_files_get_the_umask_read_without_changing_it(tmp_path, monkeypatch):
+    import dispgns.files
+
+    previous = os.umask(0o027)
+    try:
+        # Setting the umask to read it would leave other threads' new files without one for a moment.
+        monkeypatch.setattr(dispgns.files.os, "umask", lambda mask: pytest.fail("the umask was changed"))
+        with dispgns.files.atomic_path(tmp_path / "out.txt") as temporary:
+            temporary.write_text("x")
+        assert (tmp_path / "out.txt").stat().st_mode & 0o777 == 0o640
+    finally:
+        monkeypatch.undo()
+        os.umask(previous)

@@ -158,3 +158,65 @@ def test_thresholds_are_validated_and_tunable_within_a_block():
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="cell_list_min_particles"):
             tuning.Thresholds(cell_list_min_particles=bad)
+
+
+def test_a_thresholds_block_is_its_threads_own_and_overlapping_blocks_restore_in_any_order():
+    import threading
+
+    entered, exit_a, exit_b = threading.Barrier(3, timeout=60), threading.Event(), threading.Event()
+    seen = {}
+
+    def block(name, value, leave):
+        with tuning.use_thresholds(cell_list_min_particles=value):
+            entered.wait()
+            leave.wait(timeout=60)
+            seen[name] = tuning.thresholds().cell_list_min_particles
+
+    # Daemons, and every wait bounded: a failing assertion below must not leave the test waiting for them.
+    a = threading.Thread(target=block, args=("a", 10, exit_a), daemon=True)
+    b = threading.Thread(target=block, args=("b", 20, exit_b), daemon=True)
+    a.start(), b.start()
+    entered.wait()
+    try:
+        assert tuning.thresholds() == tuning.Thresholds()  # both blocks are open, in other threads
+    finally:
+        exit_a.set(), a.join(timeout=60)  # a leaves first, b after: the order a global's restores get wrong
+        exit_b.set(), b.join(timeout=60)
+    assert seen == {"a": 10, "b": 20} and tuning.thresholds() == tuning.Thresholds()
+
+
+def test_generate_datasets_workers_run_with_the_callers_thresholds(monkeypatch, tmp_path):
+    import threading
+
+    import dispgns.data.generate as generate
+    from dispgns.data import tiny_spec
+
+    seen = set()
+    simulate_batch = generate.simulate_batch
+
+    def spy(*args, **kwargs):  # what the physics would read, in the thread that runs it
+        worker = threading.current_thread().name.startswith("dispgns-simulate")
+        seen.add((worker, tuning.thresholds().slot_loop_max_pairs))
+        return simulate_batch(*args, **kwargs)
+
+    monkeypatch.setattr(generate, "simulate_batch", spy)
+    with tuning.use_thresholds(slot_loop_max_pairs=7, generation_threads=2):
+        generate.generate_dataset(tiny_spec(), tmp_path / "data", seed=0, batch_size=2)  # 3 groups, 2 threads
+    assert seen == {(True, 7)}
+
+
+# A child process calls the command line's main in-process (a command that fails at once, as a notebook's call
+# with a typo would): it must leave the process's allocator as it was.
+_CLI_IN_PROCESS = (
+    _GOOD_CITIZEN.split("import dispgns\n")[0]
+    + r"""
+import dispgns.cli, dispgns.tuning
+status = dispgns.cli.main(["evaluate", "--data", "/nonexistent-dispgns-data", "--no-progress"])
+print(json.dumps({"status": status, "ctypes": seen, "tuned": dispgns.tuning.host_allocator_tuned()}))
+"""
+)
+
+
+def test_the_command_lines_main_called_in_process_leaves_the_allocator_alone():
+    report = json.loads(_child(_CLI_IN_PROCESS).splitlines()[-1])
+    assert report == {"status": 2, "ctypes": [], "tuned": False}

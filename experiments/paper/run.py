@@ -268,4 +268,7 @@ def ship(
 
 
 if __name__ == "__main__":
+    from dispgns.tuning import tune_host_allocator
+
+    tune_host_allocator()  # first, as the dispgns program does (dispgns.cli.main leaves the process as it is)
     sys.exit(main())

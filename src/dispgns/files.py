@@ -25,6 +25,19 @@ __all__ = ["atomic_path", "check_output_directory", "leftovers", "remove_leftove
 
 
 def _umask() -> int:
+    """The process's umask, read without changing it where the system allows.
+
+    Setting it to read it (the portable way) opens a moment in which files
+    that other threads create (checkpoint writers run in threads) get no
+    umask; Linux reports it in ``/proc/self/status``.
+    """
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
     mask = os.umask(0)
     os.umask(mask)
     return mask

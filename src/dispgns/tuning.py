@@ -31,6 +31,7 @@ What each setting is worth is measured in ``benchmarks/README.md``.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import ctypes
 import dataclasses
 import functools
@@ -230,7 +231,8 @@ def tuned_model_config(model_config: dispgns.model.ModelConfig) -> dispgns.model
 
 @dataclasses.dataclass(frozen=True)
 class Thresholds:
-    """Sizes at which one algorithm overtakes another (speed only: every choice gives the same result).
+    """Sizes at which one algorithm overtakes another (speed only: every choice gives the same result to float
+    rounding; the same neighbours, found in another order).
 
     Measured on a 2-core Intel machine when they were set (``benchmarks/README.md``);
     another machine may prefer other values (:func:`use_thresholds`).
@@ -262,25 +264,31 @@ class Thresholds:
                 raise ValueError(f"Thresholds.{field.name} must be an integer >= 1, got {value!r}")
 
 
-_thresholds = Thresholds()
+# A context variable, not a module global: a ``use_thresholds`` block in one thread (or asyncio task) is not seen by
+# the others, and blocks that overlap in time restore in any order.
+_DEFAULT_THRESHOLDS = Thresholds()  # frozen: one shared default is safe
+_thresholds: contextvars.ContextVar[Thresholds] = contextvars.ContextVar(
+    "dispgns_thresholds", default=_DEFAULT_THRESHOLDS
+)
 
 
 def thresholds() -> Thresholds:
-    """The thresholds in effect (read when a function sizes or picks an algorithm, on the host)."""
-    return _thresholds
+    """The thresholds in effect in this context (read when a function sizes or picks an algorithm, on the host)."""
+    return _thresholds.get()
 
 
 @contextlib.contextmanager
 def use_thresholds(**changes: int) -> Iterator[Thresholds]:
-    """Within the ``with`` block, :func:`thresholds` has ``changes`` applied.
+    """Within the ``with`` block, :func:`thresholds` has ``changes`` applied, in this thread (context) only.
 
     Example: ``with dispgns.tuning.use_thresholds(cell_list_min_particles=400): ...``.
-    Compiled programs already cached keep the choice they were built with.
+    Compiled programs already cached keep the choice they were built with. A
+    thread started inside the block does not inherit it unless it runs in a
+    copy of the context (``contextvars.copy_context().run``), as
+    :func:`dispgns.generate_dataset`'s workers do.
     """
-    global _thresholds
-    previous = _thresholds
-    _thresholds = dataclasses.replace(previous, **changes)
+    token = _thresholds.set(dataclasses.replace(_thresholds.get(), **changes))
     try:
-        yield _thresholds
+        yield _thresholds.get()
     finally:
-        _thresholds = previous
+        _thresholds.reset(token)

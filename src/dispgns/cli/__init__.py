@@ -56,15 +56,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one ``dispgns`` command in this process; its exit status.
+
+    The caller's process is left as it was: the host allocator
+    (:func:`dispgns.tuning.tune_host_allocator`, process-wide and permanent) is
+    tuned by the ``dispgns`` program (:func:`entry`) before anything starts,
+    not here; an in-process caller who wants it calls it first.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    if not args.no_tuning:
-        from dispgns.tuning import tune_host_allocator
-
-        tune_host_allocator(warn_if_late=False)  # first (in-process callers may have started JAX already)
     from dispgns.cli._common import interrupted_status, reset_interrupts
 
     reset_interrupts()

@@ -21,6 +21,7 @@ into a dataset directory (see :mod:`dispgns.data.format`):
 from __future__ import annotations
 
 import concurrent.futures
+import contextvars
 import dataclasses
 import itertools
 import math
@@ -776,7 +777,8 @@ def _simulate_groups(
     pool = concurrent.futures.ThreadPoolExecutor(
         max_workers=min(lanes, len(groups)), thread_name_prefix="dispgns-simulate"
     )
-    futures = [pool.submit(run, index) for index in range(len(groups))]
+    # Each worker runs in a copy of the caller's context: a use_thresholds block around the call reaches them.
+    futures = [pool.submit(contextvars.copy_context().run, run, index) for index in range(len(groups))]
     try:
         for future in concurrent.futures.as_completed(futures):
             future.result()
