@@ -175,13 +175,17 @@ def test_a_thresholds_block_is_its_threads_own_and_overlapping_blocks_restore_in
     # Daemons, and every wait bounded: a failing assertion below must not leave the test waiting for them.
     a = threading.Thread(target=block, args=("a", 10, exit_a), daemon=True)
     b = threading.Thread(target=block, args=("b", 20, exit_b), daemon=True)
-    a.start(), b.start()
+    a.start()
+    b.start()
     entered.wait()
     try:
         assert tuning.thresholds() == tuning.Thresholds()  # both blocks are open, in other threads
     finally:
-        exit_a.set(), a.join(timeout=60)  # a leaves first, b after: the order a global's restores get wrong
-        exit_b.set(), b.join(timeout=60)
+        # a leaves first, b after: the order in which a module global's restores went wrong
+        exit_a.set()
+        a.join(timeout=60)
+        exit_b.set()
+        b.join(timeout=60)
     assert seen == {"a": 10, "b": 20} and tuning.thresholds() == tuning.Thresholds()
 
 
@@ -199,10 +203,13 @@ def test_generate_datasets_workers_run_with_the_callers_thresholds(monkeypatch, 
         seen.add((worker, tuning.thresholds().slot_loop_max_pairs))
         return simulate_batch(*args, **kwargs)
 
+    # A regression guard for the context variable (a module global reached every thread). The value differs from
+    # the default without changing the physics' choice of code path (the jit cache does not know the thresholds).
+    value = tuning.Thresholds().slot_loop_max_pairs + 7
     monkeypatch.setattr(generate, "simulate_batch", spy)
-    with tuning.use_thresholds(slot_loop_max_pairs=7, generation_threads=2):
+    with tuning.use_thresholds(slot_loop_max_pairs=value, generation_threads=2):
         generate.generate_dataset(tiny_spec(), tmp_path / "data", seed=0, batch_size=2)  # 3 groups, 2 threads
-    assert seen == {(True, 7)}
+    assert seen == {(True, value)}
 
 
 # A child process calls the command line's main in-process (a command that fails at once, as a notebook's call
@@ -220,3 +227,13 @@ print(json.dumps({"status": status, "ctypes": seen, "tuned": dispgns.tuning.host
 def test_the_command_lines_main_called_in_process_leaves_the_allocator_alone():
     report = json.loads(_child(_CLI_IN_PROCESS).splitlines()[-1])
     assert report == {"status": 2, "ctypes": [], "tuned": False}
+
+
+def test_no_tuning_is_not_abbreviated():
+    # The program reads --no-tuning from argv before parsing (to tune the allocator first): argparse must not
+    # accept an abbreviation that the early check would not see.
+    from dispgns.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--no-tun", "evaluate", "--data", "/nonexistent-dispgns-data"])
+    assert exit_info.value.code == 2

@@ -119,4 +119,7 @@ def main_ensemble(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
+    from dispgns.tuning import tune_host_allocator
+
+    tune_host_allocator()  # first, as the dispgns program does (dispgns.cli.main leaves the process as it is)
     raise SystemExit(main_ensemble(sys.argv[1:]))

@@ -310,4 +310,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from dispgns.tuning import tune_host_allocator
+
+    tune_host_allocator()  # first, as the dispgns program does (dispgns.cli.main leaves the process as it is)
     sys.exit(main())

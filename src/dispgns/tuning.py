@@ -285,7 +285,8 @@ def use_thresholds(**changes: int) -> Iterator[Thresholds]:
     Compiled programs already cached keep the choice they were built with. A
     thread started inside the block does not inherit it unless it runs in a
     copy of the context (``contextvars.copy_context().run``), as
-    :func:`dispgns.generate_dataset`'s workers do.
+    :func:`dispgns.generate_dataset`'s workers do. A block must end in the
+    context it began in (not across threads or event-loop tasks).
     """
     token = _thresholds.set(dataclasses.replace(_thresholds.get(), **changes))
     try:

@@ -35,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dispgns",
         description="Learned simulation of finite-size particle suspensions (graph network simulator).",
+        # _start_up reads --no-tuning from argv before parsing: no abbreviation may mean it here and not there
+        allow_abbrev=False,
     )
     parser.add_argument("--version", action="version", version=f"dispgns {__version__}")
     parser.add_argument(
@@ -58,9 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run one ``dispgns`` command in this process; its exit status.
 
-    The caller's process is left as it was: the host allocator
+    The caller's host allocator is left as it was: its tuning
     (:func:`dispgns.tuning.tune_host_allocator`, process-wide and permanent) is
-    tuned by the ``dispgns`` program (:func:`entry`) before anything starts,
+    done by the ``dispgns`` program (:func:`entry`) before anything starts,
     not here; an in-process caller who wants it calls it first.
     """
     parser = build_parser()
@@ -172,7 +174,8 @@ _START_UP_MODULES = ("jax", "h5py")
 
 
 def _start_up() -> int:
-    """Import what every command needs with Ctrl-C and SIGTERM held; the first signal received, or 0.
+    """Tune the host allocator (unless ``--no-tuning``; the only place that does), then import what every command
+    needs, with Ctrl-C and SIGTERM held; the first signal received, or 0.
 
     A signal that arrives meanwhile is answered after the imports (a second or
     so at most) with the usual status, 130 or 143, and one line. A signal the
