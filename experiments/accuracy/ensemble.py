@@ -121,5 +121,7 @@ def main_ensemble(argv: list[str]) -> int:
 if __name__ == "__main__":
     from dispgns.tuning import tune_host_allocator
 
-    tune_host_allocator()  # first, as the dispgns program does (dispgns.cli.main leaves the process as it is)
+    # As the dispgns program does (dispgns.cli.main leaves the allocator as it is); after the imports above, so
+    # possibly in part (threads that have allocated keep their arenas): speed only.
+    tune_host_allocator(warn_if_late=False)
     raise SystemExit(main_ensemble(sys.argv[1:]))

@@ -312,5 +312,7 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from dispgns.tuning import tune_host_allocator
 
-    tune_host_allocator()  # first, as the dispgns program does (dispgns.cli.main leaves the process as it is)
+    # As the dispgns program does (dispgns.cli.main leaves the allocator as it is); after the imports above, so
+    # possibly in part (threads that have allocated keep their arenas): speed only.
+    tune_host_allocator(warn_if_late=False)
     sys.exit(main())
