@@ -81,7 +81,9 @@ class Validator:
         self.model_config = model_config
         self.compiler_options = compiler_options
         c = model_config.input_sequence_length
-        self.clean_config = dataclasses.replace(train_config, noise_std=0.0, pushforward_steps=0, unroll_steps=1)
+        self.clean_config = dataclasses.replace(
+            train_config, noise_std=0.0, pushforward_steps=0, unroll_steps=1, unroll_loss="acceleration"
+        )
         self.batch = None
         if train_config.validation_examples > 0:
             stream = BatchStream(

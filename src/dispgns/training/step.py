@@ -14,7 +14,9 @@ One step on a :class:`~dispgns.training.batches.Batch` of ``B`` examples:
    flowing through the predicted frames (backpropagation through the
    rollout: the loss sees how an error grows over ``u`` steps);
 5. loss: squared error summed over ``D``, averaged over the real particles of
-   the batch and the ``u`` steps; Adam on ``params["network"]`` only;
+   the batch and the ``u`` steps (``unroll_loss``: of each step's
+   acceleration, or of the predicted positions after each step); Adam on
+   ``params["network"]`` only;
 6. optionally (``ema_decay > 0``) the moving average of the network's weights
    follows the updated ones: ``ema <- d * ema + (1 - d) * network``.
 
@@ -57,6 +59,9 @@ from dispgns.training.batches import Batch, BatchStream
 from dispgns.training.noise import random_walk_noise, target_acceleration
 from dispgns.tuning import jitted
 
+# What TrainConfig.unroll_loss may name.
+UNROLL_LOSSES = ("acceleration", "position")
+
 # optax's Adam state: a pytree of arrays of any shape and dtype (step counts, moments).
 _OptState = PyTree[Shaped[ArrayLike, "..."]]
 
@@ -95,6 +100,20 @@ class TrainConfig:
         more forward and backward pass of the network, and memory and
         compile time grow with it. The logged training loss is then the mean
         over the steps; the validation's one-step loss stays comparable.
+      unroll_loss: what the unrolled loss compares at each of the ``u``
+        steps. ``"acceleration"`` (the default): the step's standardised
+        acceleration against the true next velocity minus the window's last
+        velocity, so an error carried in from the earlier steps is not asked
+        to be undone, only its growth. ``"position"``: the predicted
+        position after the step against the true one (shifted by the input
+        corruption of the unroll's first window, which is not asked to be
+        undone either), in the same standardised units (divided by the
+        radius and the acceleration std): an acceleration error at step
+        ``i`` then counts again at every later step, with the weight the
+        rollout gives it (``j - i + 1`` at step ``j``), so the slowly
+        accumulating part of the error weighs more. With ``u = 1`` both are
+        the one-step loss (exactly, unless ``keep_inside_box`` moves the
+        predicted position).
       mirror_augmentation: reflect each training example on each horizontal
         axis with probability 1/2 (the physics is mirror-symmetric; gravity
         is along the last axis), so that the model sees as many wall
@@ -135,6 +154,7 @@ class TrainConfig:
     standardize: bool = True
     pushforward_steps: int = 0
     unroll_steps: int = 1
+    unroll_loss: str = "acceleration"
     mirror_augmentation: bool = False
     quarter_turn_augmentation: bool = False
     num_steps: int = 2_000_000
@@ -157,6 +177,7 @@ class TrainConfig:
             integers={**once, **dict.fromkeys(counts, 0)},
             positive=("learning_rate", "lr_decay", "lr_decay_steps"),
             nonnegative=("noise_std", "min_learning_rate", "ema_decay"),
+            choices={"unroll_loss": UNROLL_LOSSES},
         )
         if self.ema_decay >= 1.0:
             raise ValueError(f"TrainConfig.ema_decay must lie in [0, 1), got {self.ema_decay!r}")
@@ -358,10 +379,13 @@ def loss_fn(
     ``batch.edge_budget`` edge slots when the batch has one. With
     ``train_config.unroll_steps = u > 1`` the loss is the mean of ``u``
     consecutive steps' losses, each step's input window ending with the
-    previous steps' predictions, differentiated through them; the target of
-    each step is the true next velocity minus the window's last velocity
+    previous steps' predictions, differentiated through them. With
+    ``unroll_loss = "acceleration"`` the target of each step is the true next
+    velocity minus the window's last velocity
     (:func:`~dispgns.training.noise.target_acceleration`), so a position
-    error carried in is not asked to be undone, but its growth is.
+    error carried in is not asked to be undone, but its growth is; with
+    ``"position"`` each step's predicted position is compared with the true
+    one (see :class:`TrainConfig`).
 
     With ``axis_name`` (inside ``shard_map`` over a mesh axis that splits the
     batch) ``batch`` is this device's part and the value is its share of the
@@ -381,15 +405,28 @@ def loss_fn(
     windows, overflow = _noisy_inputs(frozen, batch, key, mc, tc, axis_name)
     params = {"network": network, "normalization": normalization}
     first = mc.input_sequence_length + tc.pushforward_steps
+    by_position = tc.unroll_loss == "position"
+    # The corruption the unroll starts from (the noise and pushforward error of its last input frame): the
+    # position targets carry it, as the acceleration targets do, so it is not asked to be undone.
+    offset = windows[:, -1] - batch.position[:, first - 1]
+    real = batch.mask[..., None]  # padding targets are zeroed: a NaN there would come back through the gradient
     error_sum = 0.0
     # u is static and small: a Python loop (the u = 1 case is exactly the one-step loss).
     for step in range(tc.unroll_steps):
         x, a, graphs, target, step_overflow = _graphs_and_target(frozen, batch, windows, first + step, mc)
         overflow = overflow | step_overflow
         output = network_output_batch(params, x, a, graphs, model_config=mc, edge_budget=batch.edge_budget)
-        error_sum = error_sum + jnp.sum(jnp.where(batch.mask, jnp.sum((output - target) ** 2, axis=-1), 0.0))
-        if step + 1 < tc.unroll_steps:
-            windows = _next_windows(params, windows, output, a, batch, mc)
+        last = step + 1 == tc.unroll_steps
+        nxt = None if last and not by_position else _next_frame(params, windows, output, a, batch, mc)
+        if by_position:
+            # In the output's units: a position error of one step is its acceleration error.
+            scale = a[..., None] * frozen["normalization"]["acceleration_std"]
+            error = (nxt - jnp.where(real, batch.position[:, first + step] + offset, 0.0)) / scale
+        else:
+            error = output - target
+        error_sum = error_sum + jnp.sum(jnp.where(batch.mask, jnp.sum(error**2, axis=-1), 0.0))
+        if not last:
+            windows = jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
     count = jnp.sum(batch.mask, dtype=jnp.float32)
     if axis_name is not None:
         count = lax.psum(count, axis_name)
@@ -397,8 +434,8 @@ def loss_fn(
     return loss, {"overflow": _any(overflow, axis_name)}
 
 
-def _next_windows(params, windows, output, a, batch: Batch, model_config: ModelConfig):
-    """``windows`` moved on by one frame to the position the standardised ``output`` predicts (differentiable).
+def _next_frame(params, windows, output, a, batch: Batch, model_config: ModelConfig):
+    """The frame ``(B, N, D)`` after ``windows`` that the standardised ``output`` predicts (differentiable).
 
     The position update of :func:`dispgns.simulator.predict_step_batch`
     (``a``: the sanitised radii), from the network output the loss has
@@ -407,8 +444,7 @@ def _next_windows(params, windows, output, a, batch: Batch, model_config: ModelC
     turns it off). No overflow poisoning: the caller has the step's flag.
     """
     acc = jax.vmap(lambda y, r: acceleration_from_output(params, y, r))(output, a)
-    nxt = next_position_batch(windows, acc, batch.radius, batch.mask, model_config=model_config)
-    return jnp.concatenate([windows[:, 1:], nxt[:, None]], axis=1)
+    return next_position_batch(windows, acc, batch.radius, batch.mask, model_config=model_config)
 
 
 @functools.partial(jax.jit, static_argnames=("axis_name",))
