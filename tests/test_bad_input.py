@@ -915,3 +915,17 @@ def test_written_files_get_the_umask_read_without_changing_it(tmp_path, monkeypa
     finally:
         monkeypatch.undo()
         os.umask(previous)
+
+
+@pytest.mark.parametrize("status", ["Umask:\n", "Umask:\tx27\n", "Name:\tpython\n"])
+def test_an_unexpected_process_status_falls_back_to_reading_the_umask_by_setting_it(monkeypatch, status):
+    import io
+
+    import dispgns.files
+
+    monkeypatch.setattr(dispgns.files, "open", lambda *args, **kwargs: io.StringIO(status), raising=False)
+    previous = os.umask(0o027)
+    try:
+        assert dispgns.files._umask() == 0o027
+    finally:
+        os.umask(previous)

@@ -36,7 +36,7 @@ def _umask() -> int:
             for line in status:
                 if line.startswith("Umask:"):
                     return int(line.split()[1], 8)
-    except (OSError, ValueError):
+    except (OSError, ValueError, IndexError):  # no /proc, or a line not in the expected form
         pass
     mask = os.umask(0)
     os.umask(mask)
