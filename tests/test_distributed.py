@@ -40,8 +40,12 @@ from dispgns.training.distributed import DataParallel
 trajs = load_dataset(sys.argv[1], ["train"])[1]["train"]
 report = {"devices": jax.device_count()}
 # The loss unrolled over 2 steps after a pushforward step: its per-device shares sum to the whole batch's too.
+# And taken on the unrolled positions, whose reference frames (the corruption kept) are each device's own.
 unrolled = {"pushforward_steps": 1, "unroll_steps": 2}
-variants = {"plain": ("plain", {}), "fused": ("fused", {}), "unrolled": ("plain", unrolled)}
+position = {**unrolled, "unroll_loss": "position"}
+variants = {
+    "plain": ("plain", {}), "fused": ("fused", {}), "unrolled": ("plain", unrolled), "position": ("plain", position)
+}
 for name, (kernels, extra) in variants.items():
     mc = ModelConfig(latent_size=16, hidden_size=16, message_passing_steps=2, connectivity_radius=0.4, kernels=kernels)
     tc = TrainConfig(batch_size=4, learning_rate=1e-3, mirror_augmentation=True, ema_decay=0.9, **extra)
@@ -97,7 +101,7 @@ def _python(code: str, *args, env=None, timeout=600) -> str:
 def test_four_devices_train_like_one_device_with_the_same_global_batch(tiny_dataset):
     report = json.loads(_python(_FOUR_DEVICE_TRAINING, tiny_dataset, env=FOUR_DEVICES))
     assert report["devices"] == 4
-    for name in ("plain", "fused", "unrolled"):
+    for name in ("plain", "fused", "unrolled", "position"):
         run = report[name]
         np.testing.assert_allclose(*np.asarray(run["losses"]).T, rtol=1e-5, err_msg=name)
         # The gradients are summed over the devices exactly once (a double sum would scale them by 4).

@@ -428,10 +428,11 @@ def test_unrolled_loss_jit_padding_and_configuration(trajectories, unrolled):
         BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2, unroll_steps=0)
 
 
-def _manual_position_loss(params, batch, pushforward, steps):
-    """The position form of the unrolled loss composed from the simulator's public steps (noise-free inputs).
+def _manual_position_loss(params, batch, pushforward, steps, noise_std=0.0, key=None):
+    """The position form of the unrolled loss composed from the simulator's public steps.
 
-    The window first moves on ``pushforward`` frames without gradient; then each of ``steps`` frames of
+    The inputs get the training noise as the loss draws it (one key per example, split from ``key``); the window
+    then moves on ``pushforward`` frames without gradient; then each of ``steps`` frames of
     :func:`dispgns.simulator.predict_step_batch` (gradient through them) is compared with the true frame shifted
     by the pushforward's error of the unroll's first window, over the radius and the acceleration std.
     """
@@ -445,6 +446,9 @@ def _manual_position_loss(params, batch, pushforward, steps):
         ).position
     )
     windows = jnp.asarray(batch.position[:, :c])
+    if noise_std:
+        keys = jax.random.split(key, windows.shape[0])
+        windows += jax.vmap(lambda k, w, m: random_walk_noise(k, w, noise_std, m))(keys, windows, batch.mask)
     for _ in range(pushforward):
         windows = jnp.concatenate([windows[:, 1:], lax.stop_gradient(advance(windows))[:, None]], axis=1)
     c += pushforward
@@ -471,21 +475,27 @@ def test_unrolled_position_loss(trajectories, unrolled):
             params["network"], params["normalization"], b, jax.random.key(2), TINY, config
         )
 
-    # The unrolled positions against the true ones, composed from the public steps: value and gradient.
+    # The unrolled positions against the true ones, composed from the public steps, with the training noise (its
+    # corruption of the inputs is kept in the targets): value and gradient.
     (value, aux), grads = grad(batch, tc)
+    (noisy, noisy_aux), noisy_grads = grad(batch, tc, 3e-3)
     want, want_grads = jax.value_and_grad(
-        lambda net: _manual_position_loss({"network": net, "normalization": params["normalization"]}, batch, 1, 3)
+        lambda net: _manual_position_loss(
+            {"network": net, "normalization": params["normalization"]}, batch, 1, 3, 3e-3, jax.random.key(2)
+        )
     )(params["network"])
-    assert not bool(aux["overflow"])
-    np.testing.assert_allclose(float(value), float(want), rtol=1e-5)
-    close(flat(grads), flat(want_grads))
+    assert not bool(aux["overflow"]) and not bool(noisy_aux["overflow"])
+    np.testing.assert_allclose(float(noisy), float(want), rtol=1e-5)
+    close(flat(noisy_grads), flat(want_grads))
+    # The reference itself: with another noise draw it differs (the comparison above sees the noise).
+    other = _manual_position_loss(params, batch, 1, 3, 3e-3, jax.random.key(3))
+    assert abs(float(other) - float(want)) > 1e-3 * float(want), (float(other), float(want))
     # It is another loss than the acceleration form: the errors carried in count again.
     (accel, _), accel_grads = grad(batch, dataclasses.replace(tc, unroll_loss="acceleration"))
     assert float(value) > 1.2 * float(accel), (float(value), float(accel))
     gap = np.linalg.norm(flat(grads) - flat(accel_grads)) / np.linalg.norm(flat(accel_grads))
     assert gap > 0.05, gap
     # Jitted and not, with training noise; padding to more particle slots changes nothing real.
-    (noisy, _), noisy_grads = grad(batch, tc, 3e-3)
     (jit_noisy, _), jit_grads = jax.jit(grad, static_argnums=(1, 2))(batch, tc, 3e-3)
     assert np.all(np.isfinite(flat(noisy_grads)))
     np.testing.assert_allclose(float(jit_noisy), float(noisy), rtol=1e-5)

@@ -15,7 +15,9 @@ One step on a :class:`~dispgns.training.batches.Batch` of ``B`` examples:
    rollout: the loss sees how an error grows over ``u`` steps);
 5. loss: squared error summed over ``D``, averaged over the real particles of
    the batch and the ``u`` steps (``unroll_loss``: of each step's
-   acceleration, or of the predicted positions after each step); Adam on
+   standardised acceleration, or of the predicted position after each step
+   divided by the radius and the acceleration std, which compounds over the
+   steps: the two forms' logged losses are not comparable); Adam on
    ``params["network"]`` only;
 6. optionally (``ema_decay > 0``) the moving average of the network's weights
    follows the updated ones: ``ema <- d * ema + (1 - d) * network``.
@@ -103,8 +105,8 @@ class TrainConfig:
       unroll_loss: what the unrolled loss compares at each of the ``u``
         steps. ``"acceleration"`` (the default): the step's standardised
         acceleration against the true next velocity minus the window's last
-        velocity, so an error carried in from the earlier steps is not asked
-        to be undone, only its growth. ``"position"``: the predicted
+        velocity, so a position error carried in from the earlier steps is
+        not asked to be undone, only its growth. ``"position"``: the predicted
         position after the step against the true one (shifted by the input
         corruption of the unroll's first window, which is not asked to be
         undone either), in the same standardised units (divided by the
@@ -112,8 +114,8 @@ class TrainConfig:
         ``i`` then counts again at every later step, with the weight the
         rollout gives it (``j - i + 1`` at step ``j``), so the slowly
         accumulating part of the error weighs more. With ``u = 1`` both are
-        the one-step loss (exactly, unless ``keep_inside_box`` moves the
-        predicted position).
+        the one-step loss (to float rounding of the positions, unless
+        ``keep_inside_box`` moves the predicted position).
       mirror_augmentation: reflect each training example on each horizontal
         axis with probability 1/2 (the physics is mirror-symmetric; gravity
         is along the last axis), so that the model sees as many wall
@@ -409,7 +411,6 @@ def loss_fn(
     # The corruption the unroll starts from (the noise and pushforward error of its last input frame): the
     # position targets carry it, as the acceleration targets do, so it is not asked to be undone.
     offset = windows[:, -1] - batch.position[:, first - 1]
-    real = batch.mask[..., None]  # padding targets are zeroed: a NaN there would come back through the gradient
     error_sum = 0.0
     # u is static and small: a Python loop (the u = 1 case is exactly the one-step loss).
     for step in range(tc.unroll_steps):
@@ -419,9 +420,9 @@ def loss_fn(
         last = step + 1 == tc.unroll_steps
         nxt = None if last and not by_position else _next_frame(params, windows, output, a, batch, mc)
         if by_position:
-            # In the output's units: a position error of one step is its acceleration error.
+            # In the output's units: the position error of one step is its acceleration error (to float rounding).
             scale = a[..., None] * frozen["normalization"]["acceleration_std"]
-            error = (nxt - jnp.where(real, batch.position[:, first + step] + offset, 0.0)) / scale
+            error = (nxt - (batch.position[:, first + step] + offset)) / scale
         else:
             error = output - target
         error_sum = error_sum + jnp.sum(jnp.where(batch.mask, jnp.sum(error**2, axis=-1), 0.0))
