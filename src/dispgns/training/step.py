@@ -410,7 +410,7 @@ def loss_fn(
     by_position = tc.unroll_loss == "position"
     # The corruption the unroll starts from (the noise and pushforward error of its last input frame): the
     # position targets carry it, as the acceleration targets do, so it is not asked to be undone.
-    offset = windows[:, -1] - batch.position[:, first - 1]
+    offset = windows[:, -1] - batch.position[:, first - 1] if by_position else None
     error_sum = 0.0
     # u is static and small: a Python loop (the u = 1 case is exactly the one-step loss).
     for step in range(tc.unroll_steps):
