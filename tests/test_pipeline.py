@@ -418,3 +418,28 @@ def test_time_estimate_ignores_the_recompiling_steps():
         step(k, {})
     assert len(written) == 1
     assert written[0].startswith("measured 0.25 s/step: the remaining 979 steps take about 4 min"), written
+
+
+def test_paper_ship_writes_the_records_validation_under_one_name_and_no_machine_path(trained, tmp_path, monkeypatch):
+    # experiments/paper/run.py's ship() on an exported run: its record names the last validation "validation" (as a
+    # checkpoint's does, and as the package's record test reads), and keeps only the dataset's own name.
+    import importlib.util
+    from pathlib import Path
+
+    from dispgns.training.checkpoint import load_model
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "paper" / "run.py"
+    spec = importlib.util.spec_from_file_location("paper_run", path)
+    paper_run = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(paper_run)
+    monkeypatch.setattr(paper_run, "REPO", tmp_path)  # the package directory it writes into
+    summaries = {"keep_inside_box_on": {"splits": {"test": {"mse": {"mean": 1e-3}}}}}
+    paper_run.ship(trained, summaries, keep_inside_box=True, best=False, name="tiny", extra={"selection": {"x": 1}})
+    _, config, info = load_model(tmp_path / "src" / "dispgns" / "pretrained" / "tiny")
+    record = info["record"]
+    exported = json.loads((trained / "model" / "model.json").read_text())["record"]
+    assert "last_validation" in exported and "last_validation" not in record
+    assert record["validation"] == exported["last_validation"] and record["validation"]["valid_rollout_mse"] > 0
+    assert record["dataset"]["path"] == Path(exported["dataset"]["path"]).name != exported["dataset"]["path"]
+    assert record["evaluation"] == {"keep_inside_box_on": {"test": {"mse": {"mean": 1e-3}}}}
+    assert record["selection"] == {"x": 1} and config.keep_inside_box and not config.symmetrize

@@ -245,6 +245,13 @@ def ship(
     model_config = dataclasses.replace(model_config, keep_inside_box=keep_inside_box, symmetrize=symmetrize)
     config = read_json(run_dir / "config.json", "configuration of the run")
     record = dict(info.get("record", {}))
+    # One vocabulary whatever was loaded: an exported model's record names its last validation "last_validation",
+    # a checkpoint's "validation" (what the package's record and its test read).
+    if "last_validation" in record:
+        record["validation"] = record.pop("last_validation")
+    dataset = record.get("dataset")
+    if isinstance(dataset, dict) and "path" in dataset:  # this machine's path says nothing elsewhere
+        dataset["path"] = Path(dataset["path"]).name
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines() if line.strip()]
     # The training that made the shipped parameters: nothing logged after its step (a best checkpoint's).
     log = [r for r in log if r.get("step", 0) <= record.get("steps", float("inf"))]
