@@ -251,7 +251,7 @@ def ship(
         record["validation"] = record.pop("last_validation")
     dataset = record.get("dataset")
     if isinstance(dataset, dict) and "path" in dataset:  # this machine's path says nothing elsewhere
-        dataset["path"] = Path(dataset["path"]).name
+        record["dataset"] = {**dataset, "path": Path(dataset["path"]).name}
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines() if line.strip()]
     # The training that made the shipped parameters: nothing logged after its step (a best checkpoint's).
     log = [r for r in log if r.get("step", 0) <= record.get("steps", float("inf"))]
