@@ -370,9 +370,14 @@ def test_plain_and_fused_kernels_agree_on_the_shipped_model(shipped):
     The kernels differ in summation order only (LayerNorm centring folded into
     the layer before it, means as dot products, another variance formula than
     flax's): a few ulps (1.2e-7) per operation, grown through 5 residual blocks
-    and 25 LayerNorms to 2.6e-6 (outputs) and 8.5e-6 (gradients) of each
-    array's largest value on these frames. 3e-5 and 1e-4 leave a 10x margin,
-    while a wrong term (a bias, a centring, a sender) is off by O(1).
+    and 25 LayerNorms to ~1e-6 of the outputs' largest value on these frames,
+    and ~1e-6 of each gradient leaf's largest value for the median leaf. A few
+    leaves carry up to 1.8e-4: the shipped model's weight gradients on these
+    frames are ill-conditioned (inputs moved by one ulp move a leaf's gradient
+    by up to 17 % with the plain kernels alone). 3e-5 (outputs), 1e-5 (the
+    median leaf) and 2e-3 (every leaf) leave a 10x margin, while a wrong term
+    (a bias, a centring, a sender) is off by O(1) on the outputs and on most
+    leaves.
     """
     params, config, x, a = shipped
     w = jax.random.normal(jax.random.key(0), (x.shape[1], config.dim))
@@ -392,9 +397,13 @@ def test_plain_and_fused_kernels_agree_on_the_shipped_model(shipped):
     (g_plain, plain), (g_fused, fused) = run("plain"), run("fused")
     scale = float(jnp.max(jnp.abs(plain)))
     assert scale > 0 and float(jnp.max(jnp.abs(fused - plain))) <= 3e-5 * scale
+    relative = []
     for (path, gp), gf in zip(jax.tree_util.tree_leaves_with_path(g_plain), jax.tree_util.tree_leaves(g_fused)):
         scale = float(jnp.max(jnp.abs(gp)))
-        assert float(jnp.max(jnp.abs(gf - gp))) <= 1e-4 * scale, jax.tree_util.keystr(path)
+        assert float(jnp.max(jnp.abs(gf - gp))) <= 2e-3 * scale, jax.tree_util.keystr(path)
+        if scale > 0:
+            relative.append(float(jnp.max(jnp.abs(gf - gp))) / scale)
+    assert len(relative) > 50 and float(np.median(relative)) <= 1e-5
 
 
 def test_bfloat16_kernels_agree_on_the_shipped_model(shipped):
