@@ -4,12 +4,14 @@
         sedimentation-2d=runs/seed8-shipped/metrics.json paper=runs/seed8-paper/metrics.json \
         sedimentation-2d=runs/seed8u-shipped/metrics.json
 
-Each argument is NAME=PATH, PATH the ``metrics.json`` of ``dispgns evaluate`` on a dataset drawn with a seed the
-models never saw (``dispgns generate --preset paper --seed 8 --train-count 0 --valid-count 0 --test-count 48
---unseen-count 0``, and the same with ``--test-count 0 --unseen-count 48`` for unseen radii). A documented test
-split holds 6 trajectories whose full-rollout MSEs spread by ~25 %, so one split says little about what a model
-scores on the next fresh draw. For every split and model this writes the mean over trajectories, its standard
-error and a 95 % bootstrap interval, the spread of the means of consecutive groups of 6 trajectories (what
+Each argument is NAME=PATH[,PATH...], PATH the ``metrics.json`` of ``dispgns evaluate`` on a dataset drawn with a
+seed the models never saw (``dispgns generate --preset paper --seed 8 --train-count 0 --valid-count 0 --test-count 48
+--unseen-count 0``, and the same with ``--test-count 0 --unseen-count 48`` for unseen radii); the files of one
+argument are pooled split by split (the same split of two seeds: ``track-S10b=runs/seed8-S10b/metrics.json,
+runs/seed10-S10b/metrics.json``, every model's files in the same seed order so that pairs stay paired). A
+documented test split holds 6 trajectories whose full-rollout MSEs spread by ~25 %, so one split says little about
+what a model scores on the next fresh draw. For every split and model this writes the mean over trajectories, its
+standard error and a 95 % bootstrap interval, the spread of the means of consecutive groups of 6 trajectories (what
 6-trajectory splits would have reported), and, for two models on the same trajectories, the paired difference.
 """
 
@@ -53,21 +55,26 @@ def describe(values: np.ndarray, rng: np.random.Generator) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("evaluations", nargs="+", metavar="NAME=PATH")
+    parser.add_argument("evaluations", nargs="+", metavar="NAME=PATH[,PATH...]")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--target", type=float, default=8e-4, help="issue 19's full-rollout MSE target")
     args = parser.parse_args(argv)
 
-    # split -> model -> per-trajectory MSE (a model may come from several files, one per split)
+    # split -> model -> per-trajectory MSE (a model may come from several arguments, one per split; the files of one
+    # argument, comma-separated, are pooled split by split in the order given, e.g. the same split of two seeds)
     by_split: dict[str, dict[str, np.ndarray]] = {}
     for argument in args.evaluations:
-        name, separator, path = argument.partition("=")
+        name, separator, paths = argument.partition("=")
         if not separator:
-            parser.error(f"expected NAME=PATH, got {argument!r}")
-        for split, values in per_trajectory_mse(Path(path)).items():
+            parser.error(f"expected NAME=PATH[,PATH...], got {argument!r}")
+        pooled: dict[str, list[np.ndarray]] = {}
+        for path in paths.split(","):
+            for split, values in per_trajectory_mse(Path(path)).items():
+                pooled.setdefault(split, []).append(values)
+        for split, parts in pooled.items():
             if name in by_split.setdefault(split, {}):
                 parser.error(f"{name} has two evaluations of split {split}")
-            by_split[split][name] = values
+            by_split[split][name] = np.concatenate(parts)
 
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     result = {"target": args.target, "splits": {}}
