@@ -10,13 +10,17 @@ true centre (normalised units), into
 - ``per_size_class``: ``sum_c (n_c / n) |mean_{i in c} e_i|^2``, the error of each size class's centre of mass,
   weighted by its share of the particles (it includes the collective part);
 
-and writes their fractions of the total, averaged over trajectories, with the totals' mean.
+and writes their fractions of the total, averaged over trajectories, with the totals' mean (summed over the axes:
+``dim`` times the per-axis MSE of ``rollout_metrics``). Particles that erred independently of one another would
+already give a collective fraction of about ``1 / n`` and a size-class fraction of about ``K / n`` (``K`` size
+classes, ``n`` particles): the JSON gives both floors beside the measured fractions.
 
     python experiments/accuracy/error_parts.py --predictions runs/seed10-S10b/predictions/test.h5 \\
         --truth datasets/paper-seed10/test.h5 --out experiments/accuracy/results/error_parts_seed10_trackS10b.json
 
 ``--predictions`` is a file that ``dispgns evaluate`` writes (``predictions/SPLIT.h5``), ``--truth`` the dataset
-split it was scored on. A horizon ``h`` is the frame ``h`` steps after the last input frame.
+split it was scored on; both are read (and checked) as dataset splits. A horizon ``h`` is the ``h``-th predicted
+frame, ``h`` steps after the last input frame (``mse_h1`` of ``rollout_metrics`` is ``h = 1``).
 """
 
 from __future__ import annotations
@@ -26,15 +30,20 @@ import json
 import sys
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-INPUT_FRAMES = 6  # the shipped models' input sequence length: predictions start at frame 6
-HORIZONS = (10, 50, 100, 200, 300, 493)
+from dispgns.data.format import read_split
+
+INPUT_FRAMES = 6  # the shipped models' input sequence length: frame 6 is the first predicted one (h = 1)
+HORIZONS = (10, 50, 100, 200, 300, 494)
 
 
 def parts(predicted: np.ndarray, true: np.ndarray, radius: np.ndarray) -> dict[str, float]:
-    """Total squared error per particle and its shared parts, for one frame: arrays ``(n, dim)`` and ``(n,)``."""
+    """Mean squared error per particle (summed over the axes) and its shared parts, for one frame.
+
+    ``predicted`` and ``true`` are ``(n, dim)`` centres, ``radius`` ``(n,)`` radii, all normalised by L; the results
+    are in L^2.
+    """
     error = predicted - true
     classes = np.unique(radius)
     return {
@@ -44,6 +53,8 @@ def parts(predicted: np.ndarray, true: np.ndarray, radius: np.ndarray) -> dict[s
         "per_size_class": float(
             sum((radius == c).mean() * (error[radius == c].mean(axis=0) ** 2).sum() for c in classes)
         ),
+        "independent_collective": 1.0 / len(radius),
+        "independent_per_size_class": len(classes) / len(radius),
     }
 
 
@@ -55,34 +66,42 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     rows: dict[int, list[dict[str, float]]] = {h: [] for h in HORIZONS}
-    with h5py.File(args.predictions, "r") as predictions, h5py.File(args.truth, "r") as truth:
-        for key in predictions:
-            if key not in truth:
-                parser.error(f"{args.truth}: no trajectory {key!r}, which {args.predictions} holds")
-            predicted, true = predictions[key]["position"][:], truth[key]["position"][:]
-            if predicted.shape != true.shape:
-                parser.error(f"trajectory {key}: predicted positions {predicted.shape}, true {true.shape}")
-            radius = truth[key]["radius"][:]
-            for h in HORIZONS:
-                rows[h].append(parts(predicted[INPUT_FRAMES + h], true[INPUT_FRAMES + h], radius))
+    predictions, truth = read_split(args.predictions), read_split(args.truth)
+    if len(predictions) != len(truth):
+        parser.error(f"{args.predictions} holds {len(predictions)} trajectories, {args.truth} {len(truth)}")
+    for index, (predicted, true) in enumerate(zip(predictions, truth)):
+        if predicted.position.shape != true.position.shape:
+            parser.error(
+                f"trajectory {index:05d}: position {predicted.position.shape} in {args.predictions}, "
+                f"{true.position.shape} in {args.truth}"
+            )
+        if len(true.position) < INPUT_FRAMES - 1 + max(HORIZONS) + 1:
+            parser.error(
+                f"{args.truth}: trajectory {index:05d} has {len(true.position)} frames, fewer than "
+                f"{INPUT_FRAMES} inputs and {max(HORIZONS)} predicted"
+            )
+        for h in HORIZONS:
+            frame = INPUT_FRAMES - 1 + h
+            rows[h].append(parts(predicted.position[frame], true.position[frame], true.radius))
 
     # the run's and the dataset's names, not this machine's paths
     names = {"predictions": "/".join(args.predictions.parts[-3:]), "truth": "/".join(args.truth.parts[-2:])}
     result = names | {"horizons": {}}
+    names = ("collective", "vertical", "per_size_class", "independent_collective", "independent_per_size_class")
     for h, records in rows.items():
         fractions = {
-            name: float(np.mean([r[name] / r["total"] for r in records]))
-            for name in ("collective", "vertical", "per_size_class")
+            name: float(np.mean([r[name] / (1.0 if name.startswith("independent") else r["total"]) for r in records]))
+            for name in names
         }
-        result["horizons"][str(h)] = (
-            {"trajectories": len(records)}
-            | {"mean_total": float(np.mean([r["total"] for r in records]))}
-            | {f"{name}_fraction": value for name, value in fractions.items()}
-        )
+        result["horizons"][str(h)] = {
+            "trajectories": len(records),
+            "mean_total": float(np.mean([r["total"] for r in records])),
+        } | {f"{name}_fraction": value for name, value in fractions.items()}
         print(
-            f"h={h:3d}: mean |e|^2 {result['horizons'][str(h)]['mean_total']:.2e}, collective "
-            f"{fractions['collective']:.3f} (vertical {fractions['vertical']:.3f}), per size class "
-            f"{fractions['per_size_class']:.3f}"
+            f"h={h:3d}: mean |e|^2 {result['horizons'][str(h)]['mean_total']:.2e} L^2, collective "
+            f"{fractions['collective']:.3f} (vertical {fractions['vertical']:.3f}; independent errors "
+            f"{fractions['independent_collective']:.3f}), per size class {fractions['per_size_class']:.3f} "
+            f"(independent errors {fractions['independent_per_size_class']:.3f})"
         )
 
     from dispgns.files import write_atomic
