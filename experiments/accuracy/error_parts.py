@@ -39,22 +39,23 @@ HORIZONS = (10, 50, 100, 200, 300, 494)
 
 
 def parts(predicted: np.ndarray, true: np.ndarray, radius: np.ndarray) -> dict[str, float]:
-    """Mean squared error per particle (summed over the axes) and its shared parts, for one frame.
+    """Mean squared error per particle (summed over the axes), and the fractions of it the particles share, for one
+    frame; beside them, the fractions independent errors would give.
 
-    ``predicted`` and ``true`` are ``(n, dim)`` centres, ``radius`` ``(n,)`` radii, all normalised by L; the results
-    are in L^2.
+    ``predicted`` and ``true`` are ``(n, dim)`` centres, ``radius`` ``(n,)`` radii, all normalised by L; ``total``
+    is in L^2.
     """
     error = predicted - true
     classes = np.unique(radius)
+    total = float((error**2).sum(axis=1).mean())
+    per_size_class = sum((radius == c).mean() * (error[radius == c].mean(axis=0) ** 2).sum() for c in classes)
     return {
-        "total": float((error**2).sum(axis=1).mean()),
-        "collective": float((error.mean(axis=0) ** 2).sum()),
-        "vertical": float(error[:, -1].mean() ** 2),
-        "per_size_class": float(
-            sum((radius == c).mean() * (error[radius == c].mean(axis=0) ** 2).sum() for c in classes)
-        ),
-        "independent_collective": 1.0 / len(radius),
-        "independent_per_size_class": len(classes) / len(radius),
+        "total": total,
+        "collective_fraction": float((error.mean(axis=0) ** 2).sum()) / total,
+        "vertical_fraction": float(error[:, -1].mean() ** 2) / total,
+        "per_size_class_fraction": float(per_size_class) / total,
+        "independent_collective_fraction": 1.0 / len(radius),
+        "independent_per_size_class_fraction": len(classes) / len(radius),
     }
 
 
@@ -85,23 +86,16 @@ def main(argv=None) -> int:
             rows[h].append(parts(predicted.position[frame], true.position[frame], true.radius))
 
     # the run's and the dataset's names, not this machine's paths
-    names = {"predictions": "/".join(args.predictions.parts[-3:]), "truth": "/".join(args.truth.parts[-2:])}
-    result = names | {"horizons": {}}
-    names = ("collective", "vertical", "per_size_class", "independent_collective", "independent_per_size_class")
+    result = {"predictions": "/".join(args.predictions.parts[-3:]), "truth": "/".join(args.truth.parts[-2:])}
+    result["horizons"] = {}
     for h, records in rows.items():
-        fractions = {
-            name: float(np.mean([r[name] / (1.0 if name.startswith("independent") else r["total"]) for r in records]))
-            for name in names
-        }
-        result["horizons"][str(h)] = {
-            "trajectories": len(records),
-            "mean_total": float(np.mean([r["total"] for r in records])),
-        } | {f"{name}_fraction": value for name, value in fractions.items()}
+        means = {name: float(np.mean([r[name] for r in records])) for name in records[0]}
+        result["horizons"][str(h)] = {"trajectories": len(records), "mean_total": means.pop("total")} | means
         print(
             f"h={h:3d}: mean |e|^2 {result['horizons'][str(h)]['mean_total']:.2e} L^2, collective "
-            f"{fractions['collective']:.3f} (vertical {fractions['vertical']:.3f}; independent errors "
-            f"{fractions['independent_collective']:.3f}), per size class {fractions['per_size_class']:.3f} "
-            f"(independent errors {fractions['independent_per_size_class']:.3f})"
+            f"{means['collective_fraction']:.3f} (vertical {means['vertical_fraction']:.3f}; independent errors "
+            f"{means['independent_collective_fraction']:.3f}), per size class {means['per_size_class_fraction']:.3f} "
+            f"(independent errors {means['independent_per_size_class_fraction']:.3f})"
         )
 
     from dispgns.files import write_atomic
