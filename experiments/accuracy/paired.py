@@ -11,6 +11,8 @@ numbers). Session 13's selection set is the 12 trajectories of ``acc400-valid`` 
 ``test`` split: 60 chaotic rollouts, enough to resolve a few percent paired where 12 cannot. For each horizon
 (1, 10, 100 frames and the full rollout) this writes each model's mean, their ratio, the mean paired difference
 (candidate minus baseline) with its standard error, and on how many trajectories the candidate is lower.
+With ``--windows``, the same for the mean MSE over windows of frames (1-10, 11-50, ..., 401-494), each with its
+share of the baseline's full-rollout MSE: where along the rollout a gain holds and where it fades.
 """
 
 from __future__ import annotations
@@ -23,16 +25,28 @@ from pathlib import Path
 import numpy as np
 
 HORIZONS = ("mse_h1", "mse_h10", "mse_h100", "mse")
+# Predicted frames, 1-based and inclusive; the last window ends at the rollout's last frame.
+WINDOWS = ((1, 10), (11, 50), (51, 100), (101, 200), (201, 300), (301, 400), (401, None))
 
 
-def pooled(paths: list[Path]) -> dict[str, np.ndarray]:
-    """Per-trajectory figures of every horizon, and the particle counts, pooled over ``paths`` in order."""
+def pooled(paths: list[Path], windows: bool = False) -> dict[str, np.ndarray]:
+    """Per-trajectory figures of every horizon, and the particle counts, pooled over ``paths`` in order.
+
+    With ``windows``, also each trajectory's mean MSE over every window of :data:`WINDOWS` (``frames_A-B``).
+    """
     columns: dict[str, list[float]] = {name: [] for name in (*HORIZONS, "n_particles")}
     for path in paths:
         for record in json.loads(path.read_text())["splits"].values():
             for trajectory in record["trajectories"]:
-                for name in columns:
+                for name in HORIZONS + ("n_particles",):
                     columns[name].append(trajectory[name])
+                if windows:
+                    per_frame = np.asarray(trajectory["per_frame_mse"], dtype=float)
+                    for first, last in WINDOWS:
+                        name = f"frames_{first}-{last or per_frame.size}"
+                        columns.setdefault(name, []).append(float(per_frame[first - 1 : last].mean()))
+    if len({len(values) for values in columns.values()}) != 1:
+        raise ValueError(f"{', '.join(map(str, paths))}: the trajectories' rollouts differ in length")
     return {name: np.asarray(values, dtype=float) for name, values in columns.items()}
 
 
@@ -48,7 +62,9 @@ def compare(baseline: dict[str, np.ndarray], candidate: dict[str, np.ndarray], n
         )
     n = baseline["mse"].size
     rows = {}
-    for horizon in HORIZONS:
+    for horizon in [name for name in baseline if name != "n_particles"]:
+        if horizon not in candidate:
+            raise ValueError(f"{names[1]}'s rollouts end before {horizon}, {names[0]}'s do not")
         a, b = baseline[horizon], candidate[horizon]
         difference = b - a
         rows[horizon] = {
@@ -60,6 +76,13 @@ def compare(baseline: dict[str, np.ndarray], candidate: dict[str, np.ndarray], n
             f"{names[1]}_lower_on": int(np.sum(difference < 0)),
             "n": n,
         }
+    windows = {name: [int(x) for x in name.removeprefix("frames_").split("-")] for name in rows if "frames_" in name}
+    if windows:
+        # A window's weight in the full-rollout MSE, the mean over all frames of every trajectory.
+        frames = max(last for _, last in windows.values())
+        for name, (first, last) in windows.items():
+            share = rows[name][names[0]] * (last - first + 1) / (rows["mse"][names[0]] * frames)
+            rows[name]["share_of_baseline_mse"] = float(share)
     return rows
 
 
@@ -67,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("models", nargs=2, metavar="NAME=PATH[,PATH...]", help="baseline first, then candidate")
     parser.add_argument("--out", type=Path, help="write the comparison here as JSON (also printed)")
+    parser.add_argument("--windows", action="store_true", help="also compare the MSE over windows of frames")
     args = parser.parse_args(argv)
     named = []
     for argument in args.models:
@@ -76,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         named.append((name, [Path(p) for p in paths.split(",")]))
     (base_name, base_paths), (cand_name, cand_paths) = named
     try:
-        rows = compare(pooled(base_paths), pooled(cand_paths), (base_name, cand_name))
+        rows = compare(pooled(base_paths, args.windows), pooled(cand_paths, args.windows), (base_name, cand_name))
     except (OSError, KeyError, ValueError, json.JSONDecodeError) as error:
         print(f"paired.py: {error}", file=sys.stderr)
         return 1
