@@ -4,12 +4,14 @@
         --out experiments/accuracy/results/late_growth_valid12_trackS10b.json
 
 ``--eval`` is the ``metrics.json`` of a ``dispgns evaluate`` run with the chaos floor (the default). At each of
-``--frames`` this writes the model's per-frame position MSE, the chaos floor's (the exact physics from the true
-initial frames perturbed by float rounding) and constant velocity's, each the mean over the trajectories. Between
-two frames A < B (``--between``) it writes how the MSE at B scales with the MSE at A across the two rollouts that
-start from the truth, the model and the chaos floor: ``log(model_B / floor_B) / log(model_A / floor_A)``. A small
-exponent means the later error barely depends on the earlier one: a perturbation of any size by frame A grows to
-about the same error by frame B, so a model more accurate up to A gains little at B.
+``--frames`` this writes the model's per-frame position MSE, the chaos floor's (the exact physics run from the true
+initial frames shifted by 1e-6 L, ``dispgns.evaluation.CHAOS_PERTURBATION``) and constant velocity's, each the mean
+over the trajectories. Between two frames A < B (``--between``) it writes the exponent
+``log(model_B / floor_B) / log(model_A / floor_A)``: how the MSE at B scales with the MSE at A across two rollouts
+of the same trajectories, the model's and the floor's, whose errors at A differ by orders of magnitude. It is a
+secant over that range, not a local slope. A small exponent reads as: the error at B barely depends on the error
+at A, so a model more accurate up to A gains little at B (provided its dynamics after A are as sensitive as the
+physics').
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from paired import trajectory_records  # the sibling script, on sys.path as this one's folder
+
+from dispgns.files import write_atomic
 
 CURVES = {"model": "per_frame_mse", "chaos_floor": "chaos_floor_per_frame_mse"}
 CONSTANT_VELOCITY = "constant_velocity_per_frame_mse"
@@ -27,11 +32,14 @@ CONSTANT_VELOCITY = "constant_velocity_per_frame_mse"
 
 def curves(path: Path) -> dict[str, np.ndarray]:
     """The mean over every trajectory of every split of the per-frame MSE curves (predicted frames, 1-based)."""
-    records = [t for split in json.loads(path.read_text())["splits"].values() for t in split["trajectories"]]
-    missing = [key for key in (*CURVES.values(), CONSTANT_VELOCITY) if key not in records[0]]
-    if missing:
-        raise KeyError(f"{path}: no {', '.join(missing)} (evaluate with the chaos floor, without --no-chaos)")
     names = {**CURVES, "constant_velocity": CONSTANT_VELOCITY}
+    try:
+        records = trajectory_records(path, tuple(names.values()))
+    except ValueError as error:
+        raise ValueError(f"{error} (evaluate with the chaos floor, without --no-chaos)") from None
+    lengths = sorted({len(r[key]) for r in records for key in names.values()})
+    if len(lengths) != 1:
+        raise ValueError(f"{path}: per-frame curves of {lengths} frames; expected one length")
     return {name: np.mean([r[key] for r in records], axis=0) for name, key in names.items()}
 
 
@@ -44,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         mean = curves(args.eval)
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as error:
+    except ValueError as error:
         print(f"late_growth.py: {error}", file=sys.stderr)
         return 1
     frames = mean["model"].size
@@ -55,12 +63,15 @@ def main(argv: list[str] | None = None) -> int:
     a, b = args.between
     ratio_a = mean["model"][a - 1] / mean["chaos_floor"][a - 1]
     ratio_b = mean["model"][b - 1] / mean["chaos_floor"][b - 1]
+    if not ratio_a > 1:
+        print(f"late_growth.py: at frame {a} the model's MSE is not above the floor's: no exponent", file=sys.stderr)
+        return 1
     report = {
         "what": "mean per-frame position MSE (box units squared) of the model, the chaos floor and constant "
         "velocity, at predicted frames; the exponent of the later MSE in the earlier one across the model and "
         "the floor",
         "eval": str(args.eval),
-        "trajectories_frames": frames,
+        "predicted_frames": frames,
         "per_frame": at,
         "full_rollout_mse": {name: float(curve.mean()) for name, curve in mean.items()},
         "between": {
@@ -71,9 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     text = json.dumps(report, indent=1)
     if args.out:
-        temporary = args.out.with_name(args.out.name + ".tmp")
-        temporary.write_text(text + "\n")
-        temporary.replace(args.out)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(args.out, text + "\n")
     print(text)
     return 0
 
