@@ -69,6 +69,22 @@ def test_the_far_field_is_the_pair_force_beyond_the_reach_as_a_per_frame_acceler
     np.testing.assert_allclose(got, expected, rtol=2e-3, atol=1e-12)
     # The near pair (0, 1) adds nothing: particle 0's field comes from 2 alone, along the vertical.
     assert abs(got[0, 0]) < 1e-6 * abs(got[0, 1])
+    # A padding particle far from all three neither adds to their field nor gets one.
+    x4 = jnp.concatenate([x, jnp.array([[0.5, -0.5]], jnp.float32)])
+    masked = np.asarray(
+        far_field.far_field_fn(metadata, config)(x4, jnp.append(radius_m, 0.004), jnp.array([True] * 3 + [False]))
+    )
+    np.testing.assert_array_equal(masked[:3], got)
+    np.testing.assert_array_equal(masked[3], 0.0)
+
+
+def test_beta_is_one_for_a_model_blind_to_the_field_and_zero_for_errors_across_it(far_field):
+    rng = np.random.default_rng(2)
+    field = rng.normal(size=(50, 2))
+    assert far_field.beta(-field, field) == pytest.approx(1.0)
+    assert far_field.beta(-3 * field, field) == pytest.approx(3.0)
+    across = np.stack([-field[:, 1], field[:, 0]], -1)  # each error at right angles to its field
+    assert far_field.beta(across, field) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_the_hybrid_without_the_far_field_is_the_models_own_rollout(far_field, split):
@@ -91,8 +107,10 @@ def test_the_hybrid_without_the_far_field_is_the_models_own_rollout(far_field, s
     assert max(np.abs(a - b).max() for a, b in zip(rollouts[1e3], rollouts[0.0], strict=True)) > 1e-6
 
 
+@pytest.mark.slow  # two compilations of the physics, ~30 s
 def test_the_physics_cut_beyond_the_box_is_the_truth(far_field, split):
     metadata, trajectories = split
+    trajectories = [dataclasses.replace(t, position=np.asarray(t.position[:20])) for t in trajectories[:1]]
     truth = [np.asarray(t.position) for t in trajectories]
     cut = far_field.truncated(metadata, trajectories, 10 * metadata.length_scale)  # every pair is nearer than that
     rows = far_field.scores(cut, truth, 6)
@@ -152,3 +170,20 @@ def test_the_rollout_view_tells_the_floor_from_the_lid(error_places):
         assert row["lid_contact"] == {"particles": pytest.approx(1 / 3), "error": 0.0}
         assert row["side_wall_contact"]["particles"] == 0.0
         assert row["mse"] == pytest.approx(0.01**2 / 6, rel=1e-4)
+
+
+def test_the_one_step_report_splits_the_error_by_window_and_class(error_places):
+    data = {
+        "error2": np.array([1.0, 3.0, 2.0, 2.0]),
+        "frame": np.array([10, 10, 100, 250]),
+        "wall_gap": np.array([0.0, 5.0, 5.0, 5.0]),
+        "neighbour": np.array([1.05, 1.05, 1.3, 1.3]),
+    }
+    report = error_places.one_step_report(data)
+    first = report["windows"]["frames 0-60"]
+    assert first["share_of_all"] == pytest.approx(0.5)
+    assert first["classes"]["wall gap -inf-0.05"] == {"particles": 0.5, "error": 0.25, "mean": 1.0}
+    assert first["classes"]["neighbour 1-1.1"]["error"] == pytest.approx(1.0)
+    assert first["worst_1_percent"] == pytest.approx(0.75)  # the worst of two entries holds 3 of 4
+    assert report["windows"]["frames 60-200"]["share_of_all"] == pytest.approx(0.25)
+    assert "frames 300-400" not in report["windows"]  # no checked frame there

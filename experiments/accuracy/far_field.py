@@ -4,7 +4,8 @@ The paper's physics applies the pair force to every pair of particles; the learn
 pairs closer than its connectivity radius (0.2 L, 0.02 m). This measures three things on a generated dataset
 (one with initial states):
 
-- ``--cutoffs`` (m): the exact physics (float64, the dataset's ``PhysicsConfig``) from the true initial states with
+- ``--cutoffs`` (m): the exact physics (the dataset's ``PhysicsConfig``, in its generation precision: float32 for the
+  presets) from the true initial states with
   the pair force dropped beyond each distance, scored against the all-pairs truth like a model (frames ``C ..``).
   A model whose dynamics matched the physics within that distance and ignored the rest would score about the same.
   ``0`` is the chaos floor (the exact physics from the initial states shifted by 1e-6 L), for scale.
@@ -14,13 +15,15 @@ pairs closer than its connectivity radius (0.2 L, 0.02 m). This measures three t
   model's own rollout computed the same way, so the rows pair like for like.
 - with ``--model``: the one-step error at true frames projected on the far field, ``beta = -<e, f> / <f, f>``
   (``e`` the model's next-position error, ``f`` the far-field acceleration), per trajectory and window of
-  frames: ``beta = 1`` is the error a model ignoring the far field and otherwise unbiased would carry, ``0`` a model
-  that has learnt it; and the far field's RMS beside the error's.
+  frames, and the far field's RMS beside the error's. ``beta = 1`` if the model is blind to the far field and its
+  other errors are orthogonal to it, ``0`` if its errors are orthogonal to the far field; errors near the graph
+  that point along the far field add to it, so ``beta`` does not tell those apart from a far field not learnt.
 
-    python experiments/accuracy/far_field.py --data datasets/acc400-valid --splits valid --cutoffs 0.02 0.04 0 \\
+    python experiments/accuracy/far_field.py --data datasets/acc400-valid --splits valid --cutoffs 0.02 0.03 0.04 0 \\
         --model sedimentation-2d --scales 0 1 3 --out experiments/accuracy/results/far_field_valid12.json
 
-writes, per row, every trajectory's full-rollout MSE (the mean of ``rollout_metrics``), its MSE over the windows of
+writes, per row, every trajectory's full-rollout MSE (the mean of its per-frame MSE curve, as ``rollout_metrics``
+computes it), its MSE over the windows of
 ``paired.py`` and at frames 1, 10, 100 and 300, and their means; rows with ``--model`` also the paired difference
 to ``s = 0`` (mean and standard error over the trajectories).
 """
@@ -121,7 +124,12 @@ def padded(trajectories):
 
 
 def far_field_fn(metadata, model_config):
-    """``(x (N, D) normalised, radius_m, mask) -> (N, D)``: the far field as a per-frame acceleration, normalised."""
+    """``far(x, radius_m, mask) -> (N, D)``: the far field as a per-frame acceleration (normalised units per frame^2).
+
+    ``x`` is ``(N, D)`` normalised centres, ``radius_m`` ``(N,)`` radii in m, ``mask`` ``(N,)`` bool (``False``:
+    padding, which neither feels nor exerts a force). The far field is the pair force from the pairs at least the
+    model's connectivity radius apart (the graph keeps the nearer ones).
+    """
     physics = metadata.physics_config
     scale, frame_time = metadata.length_scale, metadata.frame_dt
     reach = model_config.connectivity_radius * scale
@@ -132,7 +140,8 @@ def far_field_fn(metadata, model_config):
         force = interaction_force(xm, index, xm, radius_m, mask, everything)
         force = force - interaction_force(xm, index, xm, radius_m, mask, near)
         # A force held for one frame changes the per-frame velocity by F T / m, the position by F T^2 / m (the
-        # Euler sub-steps sum to it exactly when the force is constant).
+        # Euler sub-steps sum to it exactly when the force is constant; the drag, with a time of 15-40 frames,
+        # takes a few percent off within the frame, left out here).
         acc = force / particle_mass(radius_m, physics, x.shape[-1])[:, None] * (frame_time**2 / scale)
         return jnp.where(mask[:, None], acc, 0.0)
 
@@ -140,7 +149,11 @@ def far_field_fn(metadata, model_config):
 
 
 def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group):
-    """Per scale, the model's rollouts with ``scale`` times the far field added at every step (lists of arrays)."""
+    """``{s: [(T, N_k, D) positions]}``: the model's rollouts with ``s`` times the far field added at every step.
+
+    The first ``C`` frames are the truth's; the acceleration is the model's (``predict_step``) plus ``s`` times
+    :func:`far_field_fn` at the window's last frame, and the next frame is made as the model's own step makes it.
+    """
     position, radius, radius_m, mask = padded(trajectories)
     c, t_len = model_config.input_sequence_length, position.shape[1]
     capacity = fit_capacity(position, model_config, mask=mask[:, None, :], margin=0.5)
@@ -150,9 +163,12 @@ def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group)
     def rollout(window, r, rm, m, s):
         def body(win, _):
             step = predict_step(params, win, r, model_config=model_config, capacity=capacity, mask=m)
+            # predict_step's own next-frame rule, in its order of operations (at s = 0 the same bits).
             velocity = win[-1] - win[-2] + step.acceleration + s * far(win[-1], rm, m)
-            nxt = jnp.clip(win[-1] + velocity, low + r[:, None], high - r[:, None])  # the box guard
-            nxt = jnp.where(m[:, None], nxt, win[-1])
+            nxt = win[-1] + velocity
+            if model_config.keep_inside_box:  # the box guard
+                nxt = jnp.clip(nxt, low + r[:, None], high - r[:, None])
+            nxt = jnp.where(m[:, None], nxt, win[-1])  # padding stays put
             return jnp.concatenate([win[1:], nxt[None]]), (nxt, step.overflow)
 
         _, (frames, overflow) = lax.scan(body, window, None, length=t_len - c)
@@ -168,7 +184,8 @@ def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group)
             args = (position[idx, :c], radius[idx], radius_m[idx], mask[idx])
             f, overflow = run(*(jnp.asarray(a) for a in args), jnp.float32(s))
             if np.asarray(overflow).any():
-                raise RuntimeError("a hybrid rollout outgrew its graph capacity; raise the margin")
+                names = ", ".join(str(trajectories[k].attrs.get("index", k)) for k in sorted(set(idx)))
+                raise RuntimeError(f"a hybrid rollout of trajectories {names} outgrew its graph capacity (margin 0.5)")
             f = np.asarray(f)
             frames += [f[j - lo] for j in range(lo, min(lo + group, len(trajectories)))]
         out[s] = [
@@ -178,8 +195,17 @@ def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group)
     return out
 
 
+def beta(error, field):
+    """``-<e, f> / <f, f>`` over all entries: 1 for ``e = -f`` (blind to ``f``), 0 for ``e`` orthogonal to ``f``."""
+    return float(-(error * field).sum() / (field * field).sum())
+
+
 def projection(params, model_config, metadata, trajectories, every, until):
-    """Per trajectory and window: beta of the one-step error on the far field, and both RMS (per coordinate)."""
+    """Per trajectory and window of 100 frames: :func:`beta` of the one-step error on the far field, both RMS.
+
+    One-step predictions from the true frames ``C-1, C-1+every, ...`` below ``until``; the RMS are per coordinate
+    (normalised units). Windows start at 0, 100, ... and only those holding a checked frame are reported.
+    """
     far = jax.jit(jax.vmap(far_field_fn(metadata, model_config), in_axes=(0, None, None)))
     c = model_config.input_sequence_length
     out = []
@@ -197,15 +223,17 @@ def projection(params, model_config, metadata, trajectories, every, until):
         windows = np.stack([x[t - c + 1 : t + 1] for t in frames])
         result = step(jnp.asarray(windows))
         if np.asarray(result.overflow).any():
-            raise RuntimeError("a one-step prediction outgrew its graph capacity")
+            raise RuntimeError(f"trajectory {traj.attrs.get('index', '?')}: a one-step prediction outgrew its graph")
         error = np.asarray(result.position) - x[frames + 1]
         field = np.asarray(far(jnp.asarray(x[frames]), jnp.asarray(traj.initial_radius, jnp.float32), np.ones(n, bool)))
         rows = {}
-        for first in range(0, until, 100):
+        for first in range(0, int(frames[-1]) + 1, 100):
             sel = (frames >= first) & (frames < first + 100)
+            if not sel.any():
+                continue
             e, f = error[sel], field[sel]
             rows[f"{first}-{first + 100}"] = {
-                "beta": float(-(e * f).sum() / (f * f).sum()),
+                "beta": beta(e, f),
                 "error_rms": float(np.sqrt((e * e).mean())),
                 "far_field_rms": float(np.sqrt((f * f).mean())),
             }
@@ -224,6 +252,7 @@ def main():
     parser.add_argument("--projection-every", type=int, default=3, help="true frames between one-step checks")
     parser.add_argument("--projection-until", type=int, default=300, help="last frame of the one-step checks")
     parser.add_argument("--limit", type=int, default=None, help="the first N trajectories of each split")
+    parser.add_argument("--input-frames", type=int, default=6, help="C, the frames before the first scored one")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     if any(c < 0 for c in args.cutoffs):
@@ -237,7 +266,9 @@ def main():
         parser.error(f"{args.data}: the trajectories carry no initial state (generated data needed)")
     truth = [np.asarray(t.position) for t in trajectories]
     params, config = load(args.model) if args.model else (None, None)
-    c = config.input_sequence_length if args.model else 6
+    c = args.input_frames
+    if args.model and config.input_sequence_length != c:
+        parser.error(f"{args.model} takes C = {config.input_sequence_length} frames, not --input-frames {c}")
     result = {"data": args.data, "splits": args.splits, "trajectories": len(trajectories), "rows": {}}
     for cutoff in args.cutoffs:
         start = time.perf_counter()
@@ -261,17 +292,17 @@ def main():
             print(name, {k: f"{v:.3e}" for k, v in result["rows"][name]["mean"].items()}, flush=True)
         result["hybrid_seconds"] = round(time.perf_counter() - start)
         per = projection(params, config, metadata, trajectories, args.projection_every, args.projection_until)
-        beta = {}
+        by_window = {}
         for window in per[0]:
             values = np.array([p[window]["beta"] for p in per])
-            beta[window] = {
+            by_window[window] = {
                 "beta_mean": float(values.mean()),
                 "beta_standard_error": float(values.std(ddof=1) / np.sqrt(values.size)) if values.size > 1 else None,
                 "error_rms": float(np.mean([p[window]["error_rms"] for p in per])),
                 "far_field_rms": float(np.mean([p[window]["far_field_rms"] for p in per])),
             }
-        result["projection"] = {"per_trajectory": per, "mean": beta}
-        print("projection", json.dumps(beta), flush=True)
+        result["projection"] = {"per_trajectory": per, "mean": by_window}
+        print("projection", json.dumps(by_window), flush=True)
     write_atomic(Path(args.out), (json.dumps(result, indent=1) + "\n").encode())
     print("wrote", args.out)
 
