@@ -12,7 +12,7 @@ pairs) or in the bulk:
   (gap under half a radius at the true frame), and by the worst 1 % and 10 % of particles.
 
     python experiments/accuracy/error_places.py --data datasets/acc400-valid --split valid --model sedimentation-2d \\
-        --predictions runs/stats-valid-S10b/predictions/valid.h5 \\
+        --every 2 --predictions runs/stats-valid-S10b/predictions/valid.h5 \\
         --out experiments/accuracy/results/error_places_valid12_trackS10b.json
 """
 

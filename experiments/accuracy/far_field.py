@@ -17,7 +17,7 @@ pairs closer than its connectivity radius (0.2 L, 0.02 m). This measures three t
   (``e`` the model's next-position error, ``f`` the far-field acceleration), per trajectory and window of
   frames, and the far field's RMS beside the error's. ``beta = 1`` if the model is blind to the far field and its
   other errors are orthogonal to it, ``0`` if its errors are orthogonal to the far field; errors near the graph
-  that point along the far field add to it, so ``beta`` does not tell those apart from a far field not learnt.
+  that point against the far field add to it, so ``beta`` does not tell those apart from a far field not learnt.
 
     python experiments/accuracy/far_field.py --data datasets/acc400-valid --splits valid --cutoffs 0.02 0.03 0.04 0 \\
         --model sedimentation-2d --scales 0 1 3 --out experiments/accuracy/results/far_field_valid12.json
