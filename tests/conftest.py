@@ -21,6 +21,15 @@ def tiny_dataset(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def tiny_pair(tiny_dataset):
+    """``(metadata, [two trajectories])``: the first two of the tiny dataset's ``train`` split."""
+    from dispgns.data import load_dataset
+
+    metadata, splits = load_dataset(tiny_dataset, ["train"])
+    return metadata, splits["train"][:2]
+
+
+@pytest.fixture(scope="session")
 def tiny_model_config():
     return ModelConfig(connectivity_radius=0.4, **TINY_MODEL)
 

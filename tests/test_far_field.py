@@ -1,58 +1,30 @@
 """experiments/accuracy/far_field.py and error_places.py: the far field, the hybrid rollout, the error's places."""
 
 import dataclasses
-import importlib.util
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from experiment_scripts import NORM, load_experiment
 
-from dispgns.data import load_dataset
 from dispgns.model import ModelConfig, init_params
 from dispgns.physics.forces import pair_force_over_distance, particle_mass
 from dispgns.simulator import fit_capacity, rollout_scan
 
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments" / "accuracy"
-NORM = {
-    "velocity_mean": np.zeros(2),
-    "velocity_std": np.full(2, 0.05),
-    "acceleration_mean": np.zeros(2),
-    "acceleration_std": np.full(2, 0.002),
-}
-
-
-def _experiment(name):
-    sys.path.insert(0, str(EXPERIMENTS))  # far_field.py imports its sibling paired.py
-    try:
-        spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(EXPERIMENTS))
-    return module
-
 
 @pytest.fixture(scope="module")
 def far_field():
-    return _experiment("far_field")
+    return load_experiment("far_field")
 
 
 @pytest.fixture(scope="module")
 def error_places():
-    return _experiment("error_places")
+    return load_experiment("error_places")
 
 
-@pytest.fixture(scope="module")
-def split(tiny_dataset):
-    metadata, splits = load_dataset(tiny_dataset, ["train"])
-    return metadata, splits["train"][:2]
-
-
-def test_the_far_field_is_the_pair_force_beyond_the_reach_as_a_per_frame_acceleration(far_field, split):
-    metadata, _ = split
+def test_the_far_field_is_the_pair_force_beyond_the_reach_as_a_per_frame_acceleration(far_field, tiny_pair):
+    metadata, _ = tiny_pair
     config = ModelConfig(connectivity_radius=0.2, latent_size=8, hidden_size=8, message_passing_steps=1)
     scale, physics = metadata.length_scale, metadata.physics_config
     radius_m = jnp.array([0.002, 0.003, 0.004], jnp.float32)
@@ -87,8 +59,8 @@ def test_beta_is_one_for_a_model_blind_to_the_field_and_zero_for_errors_across_i
     assert far_field.beta(across, field) == pytest.approx(0.0, abs=1e-12)
 
 
-def test_the_hybrid_without_the_far_field_is_the_models_own_rollout(far_field, split):
-    metadata, trajectories = split
+def test_the_hybrid_without_the_far_field_is_the_models_own_rollout(far_field, tiny_pair):
+    metadata, trajectories = tiny_pair
     config = ModelConfig(connectivity_radius=0.4, latent_size=8, hidden_size=8, message_passing_steps=1)
     config = dataclasses.replace(config, keep_inside_box=True)
     params = init_params(jax.random.key(0), config, NORM)
@@ -108,8 +80,8 @@ def test_the_hybrid_without_the_far_field_is_the_models_own_rollout(far_field, s
 
 
 @pytest.mark.slow  # two compilations of the physics, ~30 s
-def test_the_physics_cut_beyond_the_box_is_the_truth(far_field, split):
-    metadata, trajectories = split
+def test_the_physics_cut_beyond_the_box_is_the_truth(far_field, tiny_pair):
+    metadata, trajectories = tiny_pair
     trajectories = [dataclasses.replace(t, position=np.asarray(t.position[:20])) for t in trajectories[:1]]
     truth = [np.asarray(t.position) for t in trajectories]
     cut = far_field.truncated(metadata, trajectories, 10 * metadata.length_scale)  # every pair is nearer than that

@@ -1,32 +1,19 @@
 """experiments/accuracy/handover.py: the exact physics continues a rollout from its frames, scored as evaluate does."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from experiment_scripts import load_experiment
 
-from dispgns.data import load_dataset
 from dispgns.metrics import rollout_metrics
 
 
 @pytest.fixture(scope="module")
 def handover():
-    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / "handover.py"
-    spec = importlib.util.spec_from_file_location("handover", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_experiment("handover")
 
 
-@pytest.fixture(scope="module")
-def split(tiny_dataset):
-    metadata, splits = load_dataset(tiny_dataset, ["train"])
-    return metadata, splits["train"][:2]
-
-
-def test_the_physics_continues_the_frames_it_is_handed(handover, split):
-    metadata, trajectories = split
+def test_the_physics_continues_the_frames_it_is_handed(handover, tiny_pair):
+    metadata, trajectories = tiny_pair
     truth = [np.asarray(t.position) for t in trajectories]
     step, ahead = 20, 5
     hybrid = handover.handed_over(truth, trajectories, metadata, step)
@@ -45,8 +32,8 @@ def test_the_physics_continues_the_frames_it_is_handed(handover, split):
         assert error < 0.02 * naive
 
 
-def test_the_score_is_evaluates_full_rollout_mse(handover, split):
-    metadata, trajectories = split
+def test_the_score_is_evaluates_full_rollout_mse(handover, tiny_pair):
+    metadata, trajectories = tiny_pair
     truth = np.asarray(trajectories[0].position)
     rng = np.random.default_rng(0)
     predicted = truth.copy()
@@ -57,8 +44,8 @@ def test_the_score_is_evaluates_full_rollout_mse(handover, split):
     assert handover.mse(predicted, truth, 6) == pytest.approx(expected, rel=1e-5)
 
 
-def test_a_hybrid_whose_physics_blew_up_is_left_out_and_counted(handover, split):
-    _, trajectories = split
+def test_a_hybrid_whose_physics_blew_up_is_left_out_and_counted(handover, tiny_pair):
+    _, trajectories = tiny_pair
     truth = [np.asarray(t.position) for t in trajectories]
     blown = [t.copy() for t in truth]
     blown[1][40:, 3] += 0.5  # one particle jumps half the box in one frame, as in an Euler blow-up

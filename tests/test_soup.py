@@ -1,35 +1,19 @@
 """experiments/accuracy/soup.py and ensemble.py: weight averages (one dataset, one architecture) and ensembles."""
 
 import dataclasses
-import importlib.util
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from experiment_scripts import NORM, load_experiment
 
 from dispgns.model import ModelConfig, init_params
 from dispgns.training.checkpoint import export_model, load_model
 
-NORM = {
-    "velocity_mean": np.zeros(2),
-    "velocity_std": np.full(2, 0.05),
-    "acceleration_mean": np.zeros(2),
-    "acceleration_std": np.full(2, 0.002),
-}
-
-
-def _experiment(name):
-    path = Path(__file__).resolve().parents[1] / "experiments" / "accuracy" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 @pytest.fixture(scope="module")
 def soup():
-    return _experiment("soup")
+    return load_experiment("soup")
 
 
 def _export(directory, seed, config, norm=NORM):
@@ -93,7 +77,7 @@ def test_a_missing_model_or_best_checkpoint_is_a_one_line_error(soup, tmp_path, 
 
 @pytest.fixture(scope="module")
 def ensemble():
-    return _experiment("ensemble")
+    return load_experiment("ensemble")
 
 
 def _graph_inputs(config, seed=0):

@@ -25,7 +25,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from far_field import load  # the sibling script, on sys.path as this one's folder
+from handover import load  # the sibling script, on sys.path as this one's folder
 
 from dispgns import fit_capacity
 from dispgns.data import load_dataset

@@ -39,8 +39,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from handover import load  # a sibling script, like paired below: on sys.path as this one's folder
 from jax import lax
-from paired import WINDOWS  # the sibling script, on sys.path as this one's folder
+from paired import WINDOWS
 
 from dispgns import fit_capacity, tuning
 from dispgns.data import load_dataset
@@ -48,19 +49,10 @@ from dispgns.evaluation import CHAOS_PERTURBATION, chaos_floor_trajectories
 from dispgns.files import write_atomic
 from dispgns.metrics import per_frame_mse
 from dispgns.physics.forces import interaction_force, particle_mass
-from dispgns.pretrained import load_pretrained, shipped_models
 from dispgns.simulator import predict_step
-from dispgns.training.checkpoint import load_params
 
 HORIZONS = (1, 10, 100, 300)
 """Predicted frames whose MSE is reported on its own."""
-
-
-def load(source: str):
-    """A model as shipped (mirror average, box guard), on the CPU kernels (same results, faster)."""
-    params, config, _ = load_pretrained(source) if source in shipped_models() else load_params(source)
-    config = dataclasses.replace(config, symmetrize=True, keep_inside_box=True)
-    return params, tuning.tuned_model_config(config)
 
 
 def scores(frames, truth, c):
