@@ -140,16 +140,17 @@ def far_field_fn(metadata, model_config):
     return far
 
 
-def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group):
-    """``{s: [(T, N_k, D) positions]}``: the model's rollouts with ``s`` times the far field added at every step.
+def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group, field=None):
+    """``{s: [(T, N_k, D) positions]}``: the model's rollouts with ``s`` times a field added at every step.
 
     The first ``C`` frames are the truth's; the acceleration is the model's (``predict_step``) plus ``s`` times
-    :func:`far_field_fn` at the window's last frame, and the next frame is made as the model's own step makes it.
+    ``field(x, radius_m, mask)`` (default :func:`far_field_fn`, the far field) at the window's last frame, and the
+    next frame is made as the model's own step makes it.
     """
     position, radius, radius_m, mask = padded(trajectories)
     c, t_len = model_config.input_sequence_length, position.shape[1]
     capacity = fit_capacity(position, model_config, mask=mask[:, None, :], margin=0.5)
-    far = far_field_fn(metadata, model_config)
+    far = field or far_field_fn(metadata, model_config)
     low, high = (jnp.asarray(model_config.bounds, jnp.float32)[:, k] for k in (0, 1))
 
     def rollout(window, r, rm, m, s):
@@ -192,6 +193,25 @@ def beta(error, field):
     return float(-(error * field).sum() / (field * field).sum())
 
 
+def one_step_errors(params, model_config, traj, every, until):
+    """``(frames, error)``: the model's one-step next-position errors ``(F, N, D)`` from the true frames.
+
+    ``frames`` are the last input frames ``C-1, C-1+every, ...`` below ``until`` (and below the trajectory's last
+    frame); ``error`` is the predicted minus the true next position (normalised units).
+    """
+    c = model_config.input_sequence_length
+    x = np.asarray(traj.position)
+    capacity = fit_capacity(x, model_config, margin=0.1)
+    step = jax.jit(
+        jax.vmap(lambda w, a=traj.radius: predict_step(params, w, a, model_config=model_config, capacity=capacity))
+    )
+    frames = np.arange(c - 1, min(until, x.shape[0] - 1), every)
+    result = step(jnp.asarray(np.stack([x[t - c + 1 : t + 1] for t in frames])))
+    if np.asarray(result.overflow).any():
+        raise RuntimeError(f"trajectory {traj.attrs.get('index', '?')}: a one-step prediction outgrew its graph")
+    return frames, np.asarray(result.position) - x[frames + 1]
+
+
 def projection(params, model_config, metadata, trajectories, every, until):
     """Per trajectory and window of 100 frames: :func:`beta` of the one-step error on the far field, both RMS.
 
@@ -199,24 +219,10 @@ def projection(params, model_config, metadata, trajectories, every, until):
     (normalised units). Windows start at 0, 100, ... and only those holding a checked frame are reported.
     """
     far = jax.jit(jax.vmap(far_field_fn(metadata, model_config), in_axes=(0, None, None)))
-    c = model_config.input_sequence_length
     out = []
     for traj in trajectories:
+        frames, error = one_step_errors(params, model_config, traj, every, until)
         x, n = np.asarray(traj.position), traj.position.shape[1]
-        capacity = fit_capacity(x, model_config, margin=0.1)
-        step = jax.jit(
-            jax.vmap(
-                lambda w, a=traj.radius, cap=capacity: predict_step(
-                    params, w, a, model_config=model_config, capacity=cap
-                )
-            )
-        )
-        frames = np.arange(c - 1, min(until, x.shape[0] - 1), every)
-        windows = np.stack([x[t - c + 1 : t + 1] for t in frames])
-        result = step(jnp.asarray(windows))
-        if np.asarray(result.overflow).any():
-            raise RuntimeError(f"trajectory {traj.attrs.get('index', '?')}: a one-step prediction outgrew its graph")
-        error = np.asarray(result.position) - x[frames + 1]
         field = np.asarray(far(jnp.asarray(x[frames]), jnp.asarray(traj.initial_radius, jnp.float32), np.ones(n, bool)))
         rows = {}
         for first in range(0, int(frames[-1]) + 1, 100):

@@ -1,0 +1,203 @@
+"""Which part of the pair force a model gets wrong, by distance (issue 19).
+
+``far_field.py`` projected a model's one-step error on the pair force from beyond its graph and found it points
+against that force (``beta`` 2-3: the model moves particles too little towards where more of them lie). This splits
+the exact pair force into bands of distance and regresses the one-step error on all of them at once, so the far
+field's share is told apart from the bands the graph does see:
+
+- bands within the graph's reach by ``r / (a_i + a_j)``: below ``--edges[0]`` (1.122: the repulsive side of the
+  force's zero, contacts and overlaps), the well up to ``--edges[1]``, the tail beyond; and ``far``, the pairs at
+  least the connectivity radius apart (the graph does not join them);
+- per window of 100 frames, pooled over the trajectories: ``beta`` solving ``e ~ -sum_k beta_k f_k`` in least
+  squares (``e`` the one-step next-position error at true frames, ``f_k`` band ``k``'s force as a per-frame
+  acceleration, as in ``far_field.py``). ``beta_k = 1``: the model is blind to band ``k``; ``0``: its errors do
+  not follow band ``k``; ``< 0``: it overshoots it. ``explained`` is the share of the squared one-step error the
+  fitted combination removes. The single-band ``beta`` of ``far_field.py`` is reported beside it;
+- with ``--correct``: the model's rollout with ``sum_k beta_k f_k`` added at every step (``beta`` fitted on frames
+  0-300 of these trajectories, or read from ``--betas``, an earlier output, for a fit out of sample), paired
+  against its own rollout (``far_field.hybrid_rollouts``, ``s = 0`` and ``1``). This is an oracle (it uses the
+  exact force law): it says how much a model that erred less along those bands would gain, not a lever to ship.
+
+    python experiments/accuracy/band_projection.py --data datasets/acc400-valid --splits valid \\
+        --model sedimentation-2d --out experiments/accuracy/results/band_projection_valid12.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from far_field import hybrid_rollouts, one_step_errors, scores, summarize  # sibling scripts
+from handover import load
+
+from dispgns.data import load_dataset
+from dispgns.files import write_atomic
+from dispgns.physics.forces import pair_force_over_distance, particle_mass
+
+EDGES = (1.122, 1.5, 2.5)
+"""Band edges within the graph in ``r / (a_i + a_j)``: the force's zero (``2^(1/6)``), the well's end, the tail."""
+
+
+def band_names(edges):
+    """``"r/sigma<1.122", ..., "far"``: one name per band of :func:`band_fields_fn`."""
+    cuts = (0.0, *edges, None)
+    names = [f"r/sigma {lo:g}-{hi:g}" if hi else f"r/sigma >= {lo:g}, in graph" for lo, hi in zip(cuts, cuts[1:])]
+    return names + ["far (beyond the graph)"]
+
+
+def band_fields_fn(metadata, model_config, edges=EDGES):
+    """``fields(x, radius_m, mask) -> (K, N, D)``: the pair force by band, as per-frame accelerations.
+
+    ``x`` ``(N, D)`` normalised centres, ``radius_m`` ``(N,)`` in m, ``mask`` ``(N,)`` (padding neither feels nor
+    exerts a force). Bands: within the connectivity radius by ``r / (a_i + a_j)`` cut at ``edges``
+    (``len(edges) + 1`` bands), then every pair beyond it. They partition the pairs, so the bands sum to the exact
+    all-pairs force (normalised units per frame^2, ``F T^2 / (m L)`` as in ``far_field.far_field_fn``).
+    """
+    physics = metadata.physics_config
+    scale, frame_time = metadata.length_scale, metadata.frame_dt
+    reach = model_config.connectivity_radius * scale
+    bounds = jnp.asarray((0.0, *edges, np.inf))
+
+    def fields(x, radius_m, mask):
+        xm = x * scale
+        d = xm[:, None, :] - xm[None, :, :]  # x_i - x_j, m
+        r2 = (d * d).sum(-1)
+        n = x.shape[0]
+        valid = mask[:, None] & mask[None, :] & ~jnp.eye(n, dtype=bool)
+        a_i, a_j = radius_m[:, None], radius_m[None, :]
+        coeff = jnp.where(valid, pair_force_over_distance(jnp.where(valid, r2, 1.0), a_i, a_j, physics), 0.0)
+        r_over_sigma = jnp.sqrt(r2) / (a_i + a_j)
+        inside = r2 < reach * reach
+        masks = [inside & (r_over_sigma >= lo) & (r_over_sigma < hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
+        masks.append(~inside)
+        force = jnp.stack([jnp.einsum("ij,ijd->id", jnp.where(m, coeff, 0.0), d) for m in masks])
+        acc = force / particle_mass(radius_m, physics, x.shape[-1])[None, :, None] * (frame_time**2 / scale)
+        return jnp.where(mask[None, :, None], acc, 0.0)
+
+    return fields
+
+
+def fit(error, fields):
+    """Least-squares ``beta`` for ``error ~ -sum_k beta_k fields[k]`` and the share of ``|error|^2`` it removes.
+
+    ``error`` ``(...)``, ``fields`` ``(K, ...)`` of the same trailing shape. Also each band's own projection
+    ``-<e, f_k> / <f_k, f_k>`` (``far_field.beta``), which ignores the other bands.
+    """
+    f = fields.reshape(fields.shape[0], -1).astype(np.float64)
+    e = error.reshape(-1).astype(np.float64)
+    gram, rhs = f @ f.T, -(f @ e)
+    beta = np.linalg.solve(gram, rhs)
+    residual = e + beta @ f
+    return {
+        "beta": beta.tolist(),
+        "explained": float(1.0 - (residual @ residual) / (e @ e)),
+        "single_band_beta": (rhs / np.diag(gram)).tolist(),
+        "field_rms": np.sqrt((f * f).mean(1)).tolist(),
+        "error_rms": float(np.sqrt((e * e).mean())),
+    }
+
+
+def band_errors(params, model_config, metadata, trajectories, every, until, edges):
+    """Per trajectory ``(frames, error (F, N, D), fields (K, F, N, D))`` at the true frames ``C-1, C-1+every, ...``."""
+    fields_fn = jax.jit(jax.vmap(band_fields_fn(metadata, model_config, edges), in_axes=(0, None, None), out_axes=1))
+    out = []
+    for traj in trajectories:
+        frames, error = one_step_errors(params, model_config, traj, every, until)
+        x, n = np.asarray(traj.position), traj.position.shape[1]
+        radius_m = jnp.asarray(traj.initial_radius, jnp.float32)
+        out.append((frames, error, np.asarray(fields_fn(jnp.asarray(x[frames]), radius_m, jnp.ones(n, bool)))))
+    return out
+
+
+def windows_fit(per_trajectory, width=100):
+    """:func:`fit` per window of ``width`` frames, pooled over the trajectories, with each trajectory's own ``beta``."""
+    last = max(int(frames[-1]) for frames, _, _ in per_trajectory)
+    out = {}
+    for first in range(0, last + 1, width):
+        picks = [((frames >= first) & (frames < first + width), e, f) for frames, e, f in per_trajectory]
+        picks = [(e[s], f[:, s]) for s, e, f in picks if s.any()]
+        if not picks:
+            continue
+        pooled = fit(
+            np.concatenate([e.reshape(-1) for e, _ in picks]),
+            np.concatenate([f.reshape(f.shape[0], -1) for _, f in picks], 1),
+        )
+        own = np.array([fit(e, f)["beta"] for e, f in picks])
+        pooled["beta_standard_error"] = (own.std(0, ddof=1) / np.sqrt(len(own))).tolist() if len(own) > 1 else None
+        out[f"{first}-{first + width}"] = pooled
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--splits", nargs="+", default=["test"])
+    parser.add_argument("--model", required=True, help="a shipped name, run or export")
+    parser.add_argument("--edges", type=float, nargs="+", default=list(EDGES), help="band edges in r / sigma")
+    parser.add_argument("--every", type=int, default=2, help="true frames between one-step checks")
+    parser.add_argument("--until", type=int, default=300, help="last frame of the one-step checks")
+    parser.add_argument("--limit", type=int, default=None, help="the first N trajectories of each split")
+    parser.add_argument("--correct", action="store_true", help="roll out with the fitted combination added")
+    parser.add_argument("--betas", help="an earlier output whose frames-0-300 beta --correct uses")
+    parser.add_argument("--group", type=int, default=12, help="trajectories rolled out together")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+    edges = tuple(args.edges)
+    if list(edges) != sorted(edges) or edges[0] <= 0:
+        parser.error(f"--edges must be increasing and > 0, got {args.edges}")
+
+    metadata, splits = load_dataset(args.data, args.splits)
+    trajectories = [t for split in args.splits for t in splits[split][: args.limit]]
+    if any(t.initial_radius is None for t in trajectories):
+        parser.error(f"{args.data}: the trajectories carry no radii in m (generated data needed)")
+    params, config = load(args.model)
+    names = band_names(edges)
+    result = {"data": args.data, "splits": args.splits, "model": args.model, "bands": names}
+    start = time.perf_counter()
+    per = band_errors(params, config, metadata, trajectories, args.every, args.until, edges)
+    result["windows"] = windows_fit(per)
+    result["windows"]["all"] = windows_fit(per, width=args.until + 1)[f"0-{args.until + 1}"]
+    result["fit_seconds"] = round(time.perf_counter() - start)
+    for window, w in result["windows"].items():
+        print(window, "explained", f"{w['explained']:.4f}", flush=True)
+        for k, name in enumerate(names):
+            se = w["beta_standard_error"][k] if w["beta_standard_error"] else float("nan")
+            print(
+                f"  {name:28s} beta {w['beta'][k]:+.3f} ± {se:.3f}  single {w['single_band_beta'][k]:+.3f}"
+                f"  field rms {w['field_rms'][k]:.2e}  (error rms {w['error_rms']:.2e})",
+                flush=True,
+            )
+    if args.correct:
+        source = json.loads(Path(args.betas).read_text()) if args.betas else result
+        if args.betas and source["bands"] != names:
+            parser.error(f"{args.betas}: its bands {source['bands']} are not these {names}")
+        beta = jnp.asarray(source["windows"]["all"]["beta"], jnp.float32)
+        fields = band_fields_fn(metadata, config, edges)
+        start = time.perf_counter()
+        rollouts = hybrid_rollouts(
+            params, config, metadata, trajectories, [0.0, 1.0], args.group,
+            field=lambda x, rm, m: jnp.tensordot(beta, fields(x, rm, m), 1),
+        )  # fmt: skip
+        truth = [np.asarray(t.position) for t in trajectories]
+        c = config.input_sequence_length
+        baseline, corrected = scores(rollouts[0.0], truth, c), scores(rollouts[1.0], truth, c)
+        result["correction"] = {
+            "beta": np.asarray(beta).tolist(),
+            "beta_from": args.betas or "this fit",
+            "model": {"per_trajectory": baseline, **summarize(baseline)},
+            "model + correction": {"per_trajectory": corrected, **summarize(corrected, baseline)},
+            "seconds": round(time.perf_counter() - start),
+        }
+        for key, p in result["correction"]["model + correction"]["paired_to_s0"].items():
+            print(f"{key:10s} ratio {p['ratio']:.3f}  ({p['difference'] / p['standard_error']:+.1f} SE)", flush=True)
+    write_atomic(Path(args.out), (json.dumps(result, indent=1) + "\n").encode())
+    print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()
