@@ -10,6 +10,7 @@ from experiment_scripts import NORM, load_experiment
 
 from dispgns.model import ModelConfig, init_params
 from dispgns.physics.forces import interaction_force, particle_mass
+from dispgns.simulator import fit_capacity, predict_step
 
 CONFIG = ModelConfig(connectivity_radius=0.2, latent_size=8, hidden_size=8, message_passing_steps=1)
 
@@ -101,15 +102,29 @@ def test_the_correction_at_zero_betas_is_the_models_own_rollout(bands, far_field
     params = init_params(jax.random.key(0), config, NORM)
     short = [dataclasses.replace(t, position=np.asarray(t.position[:16])) for t in trajectories]
     fields = bands.band_fields_fn(metadata, config)
-    for beta, moved in [(jnp.zeros(len(bands.EDGES) + 2), False), (jnp.full(len(bands.EDGES) + 2, 1e3), True)]:
+    k = len(bands.EDGES) + 2
+    for beta, gain, moved in [(jnp.zeros(k), 0.0, False), (jnp.full(k, 1e3), 0.0, True), (jnp.zeros(k), 0.5, True)]:
         got = far_field.hybrid_rollouts(
-            params,
-            config,
-            metadata,
-            short,
-            [0.0, 1.0],
-            2,
+            params, config, metadata, short, [0.0, 1.0], 2, gain=gain,
             field=lambda x, rm, m, b=beta: jnp.tensordot(b, fields(x, rm, m), 1),
-        )
+        )  # fmt: skip
         gap = max(np.abs(a - b).max() for a, b in zip(got[1.0], got[0.0], strict=True))
-        assert (gap > 1e-6) == moved
+        assert (gap > 1e-6) == moved, (beta[0], gain)
+        if not moved:
+            for a, b in zip(got[1.0], got[0.0], strict=True):
+                np.testing.assert_array_equal(a, b)
+
+
+def test_the_own_regressor_is_the_models_predicted_acceleration(bands, tiny_pair):
+    metadata, trajectories = tiny_pair
+    config = dataclasses.replace(CONFIG, connectivity_radius=0.4)
+    params = init_params(jax.random.key(1), config, NORM)
+    short = [dataclasses.replace(trajectories[0], position=np.asarray(trajectories[0].position[:30]))]
+    [(frames, error, fields)] = bands.band_errors(params, config, metadata, short, 7, 30, bands.EDGES, own=True)
+    assert fields.shape[0] == len(bands.EDGES) + 3
+    x = short[0].position
+    capacity = fit_capacity(x, config, margin=0.1)
+    for j, t in enumerate(frames):
+        step = predict_step(params, x[t - 5 : t + 1], short[0].radius, model_config=config, capacity=capacity)
+        np.testing.assert_allclose(fields[-1, j], np.asarray(step.acceleration), atol=1e-6)
+        np.testing.assert_allclose(error[j], np.asarray(step.position) - x[t + 1], atol=1e-6)

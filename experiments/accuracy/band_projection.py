@@ -17,6 +17,9 @@ field's share is told apart from the bands the graph does see:
   0-300 of these trajectories, or read from ``--betas``, an earlier output, for a fit out of sample), paired
   against its own rollout (``far_field.hybrid_rollouts``, ``s = 0`` and ``1``). This is an oracle (it uses the
   exact force law): it says how much a model that erred less along those bands would gain, not a lever to ship.
+- with ``--own``: the model's own predicted acceleration is one more regressor (``beta > 0``: the model's steps
+  are too short along themselves), and ``--correct`` scales the model's acceleration by ``1 + beta_own``. A
+  ``--betas`` file with the bands' ``beta`` set to 0 gives that gain alone, which needs no force law.
 
     python experiments/accuracy/band_projection.py --data datasets/acc400-valid --splits valid \\
         --model sedimentation-2d --out experiments/accuracy/results/band_projection_valid12.json
@@ -102,15 +105,22 @@ def fit(error, fields):
     }
 
 
-def band_errors(params, model_config, metadata, trajectories, every, until, edges):
-    """Per trajectory ``(frames, error (F, N, D), fields (K, F, N, D))`` at the true frames ``C-1, C-1+every, ...``."""
+def band_errors(params, model_config, metadata, trajectories, every, until, edges, own=False):
+    """Per trajectory ``(frames, error (F, N, D), fields (K, F, N, D))`` at the true frames ``C-1, C-1+every, ...``.
+
+    With ``own`` the model's own predicted acceleration (normalised units per frame^2) is one more field, the last.
+    """
     fields_fn = jax.jit(jax.vmap(band_fields_fn(metadata, model_config, edges), in_axes=(0, None, None), out_axes=1))
     out = []
     for traj in trajectories:
         frames, error = one_step_errors(params, model_config, traj, every, until)
         x, n = np.asarray(traj.position), traj.position.shape[1]
         radius_m = jnp.asarray(traj.initial_radius, jnp.float32)
-        out.append((frames, error, np.asarray(fields_fn(jnp.asarray(x[frames]), radius_m, jnp.ones(n, bool)))))
+        fields = np.asarray(fields_fn(jnp.asarray(x[frames]), radius_m, jnp.ones(n, bool)))
+        if own:  # predicted minus the constant-velocity position: x_pred - 2 x_t + x_(t-1)
+            acceleration = error + x[frames + 1] - 2 * x[frames] + x[frames - 1]
+            fields = np.concatenate([fields, acceleration[None].astype(fields.dtype)])
+        out.append((frames, error, fields))
     return out
 
 
@@ -142,6 +152,7 @@ def main():
     parser.add_argument("--every", type=int, default=2, help="true frames between one-step checks")
     parser.add_argument("--until", type=int, default=300, help="last frame of the one-step checks")
     parser.add_argument("--limit", type=int, default=None, help="the first N trajectories of each split")
+    parser.add_argument("--own", action="store_true", help="the model's own acceleration as one more regressor")
     parser.add_argument("--correct", action="store_true", help="roll out with the fitted combination added")
     parser.add_argument("--betas", help="an earlier output whose frames-0-300 beta --correct uses")
     parser.add_argument("--group", type=int, default=12, help="trajectories rolled out together")
@@ -156,10 +167,10 @@ def main():
     if any(t.initial_radius is None for t in trajectories):
         parser.error(f"{args.data}: the trajectories carry no radii in m (generated data needed)")
     params, config = load(args.model)
-    names = band_names(edges)
+    names = band_names(edges) + (["the model's own acceleration"] if args.own else [])
     result = {"data": args.data, "splits": args.splits, "model": args.model, "bands": names}
     start = time.perf_counter()
-    per = band_errors(params, config, metadata, trajectories, args.every, args.until, edges)
+    per = band_errors(params, config, metadata, trajectories, args.every, args.until, edges, own=args.own)
     result["windows"] = windows_fit(per)
     result["windows"]["all"] = windows_fit(per, width=args.until + 1)[f"0-{args.until + 1}"]
     result["fit_seconds"] = round(time.perf_counter() - start)
@@ -177,17 +188,21 @@ def main():
         if args.betas and source["bands"] != names:
             parser.error(f"{args.betas}: its bands {source['bands']} are not these {names}")
         beta = jnp.asarray(source["windows"]["all"]["beta"], jnp.float32)
+        # The model's own acceleration, if fitted, scales the model's step; the bands add their forces.
+        gain = float(beta[-1]) if args.own else 0.0
+        beta = beta[: len(edges) + 2]
         fields = band_fields_fn(metadata, config, edges)
         start = time.perf_counter()
         rollouts = hybrid_rollouts(
             params, config, metadata, trajectories, [0.0, 1.0], args.group,
-            field=lambda x, rm, m: jnp.tensordot(beta, fields(x, rm, m), 1),
+            field=lambda x, rm, m: jnp.tensordot(beta, fields(x, rm, m), 1), gain=gain,
         )  # fmt: skip
         truth = [np.asarray(t.position) for t in trajectories]
         c = config.input_sequence_length
         baseline, corrected = scores(rollouts[0.0], truth, c), scores(rollouts[1.0], truth, c)
         result["correction"] = {
             "beta": np.asarray(beta).tolist(),
+            "gain": gain,
             "beta_from": args.betas or "this fit",
             "model": {"per_trajectory": baseline, **summarize(baseline)},
             "model + correction": {"per_trajectory": corrected, **summarize(corrected, baseline)},

@@ -140,12 +140,12 @@ def far_field_fn(metadata, model_config):
     return far
 
 
-def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group, field=None):
+def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group, field=None, gain=0.0):
     """``{s: [(T, N_k, D) positions]}``: the model's rollouts with ``s`` times a field added at every step.
 
-    The first ``C`` frames are the truth's; the acceleration is the model's (``predict_step``) plus ``s`` times
-    ``field(x, radius_m, mask)`` (default :func:`far_field_fn`, the far field) at the window's last frame, and the
-    next frame is made as the model's own step makes it.
+    The first ``C`` frames are the truth's; the acceleration is the model's (``predict_step``), times
+    ``1 + s gain``, plus ``s`` times ``field(x, radius_m, mask)`` (default :func:`far_field_fn`, the far field) at
+    the window's last frame, and the next frame is made as the model's own step makes it.
     """
     position, radius, radius_m, mask = padded(trajectories)
     c, t_len = model_config.input_sequence_length, position.shape[1]
@@ -157,7 +157,7 @@ def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group,
         def body(win, _):
             step = predict_step(params, win, r, model_config=model_config, capacity=capacity, mask=m)
             # predict_step's own next-frame rule, in its order of operations (at s = 0 the same bits).
-            velocity = win[-1] - win[-2] + step.acceleration + s * far(win[-1], rm, m)
+            velocity = win[-1] - win[-2] + (1 + s * gain) * step.acceleration + s * far(win[-1], rm, m)
             nxt = win[-1] + velocity
             if model_config.keep_inside_box:  # the box guard
                 nxt = jnp.clip(nxt, low + r[:, None], high - r[:, None])
