@@ -127,6 +127,39 @@ def test_batches_are_deterministic_resumable_and_padded(trajectories):
         assert b.capacity.edges >= stream.pairs[stream.batch_examples(0)].max()
 
 
+def test_early_windows_are_drawn_early_repeats_times_per_epoch(trajectories):
+    index = example_index([14, 9], 7, early_windows=2, early_repeats=3)
+    assert len(index) == (8 + 2 * 2) + (3 + 2 * 2)
+    for k, m in [(0, 8), (1, 3)]:
+        starts = np.sort(index.start[index.trajectory == k])
+        np.testing.assert_array_equal(starts, np.sort(np.r_[np.arange(m), [0, 0, 1, 1]]))
+    # More early windows than a trajectory has: each of its windows is repeated, no more.
+    assert len(example_index([9], 7, early_windows=10, early_repeats=2)) == 3 * 2
+    for got, want in zip(example_index([14], 7, early_windows=5, early_repeats=1), example_index([14], 7)):
+        np.testing.assert_array_equal(got, want)
+    for bad in [dict(early_windows=-1), dict(early_repeats=0), dict(early_windows=1.5)]:
+        with pytest.raises(ValueError, match="early"):
+            example_index([14], 7, **bad)
+    config = TrainConfig(batch_size=3, early_windows=2, early_repeats=4, seed=5)
+    stream = BatchStream.for_training(trajectories, TINY, config)
+    plain = BatchStream.for_training(trajectories, TINY, dataclasses.replace(config, early_windows=0))
+    assert stream.num_examples == plain.num_examples + 2 * 2 * 3
+    # An epoch draws every copy: the windows starting at frames 0 and 1 four times each per trajectory.
+    epoch = np.concatenate([stream.batch_examples(i) for i in range(stream.batches_per_epoch)])
+    full = np.concatenate([epoch, stream.epoch_order(0)[len(epoch) :]])  # with the few an epoch leaves over
+    starts = stream.index.start[full]
+    assert (starts == 0).sum() == 2 * 4 and (starts == 1).sum() == 2 * 4 and (starts == 2).sum() == 2
+    # A repeated window is the same frames (the batch holds the trajectory's window at that start).
+    b = stream.batch(0)
+    for k, (t, s) in enumerate(b.example):
+        n = trajectories[t].position.shape[1]
+        np.testing.assert_array_equal(b.position[k, :, :n], trajectories[t].position[s : s + 7])
+    with pytest.raises(ValueError, match="early_repeats"):
+        TrainConfig(early_repeats=0)
+    with pytest.raises(ValueError, match="early_windows"):
+        TrainConfig(early_windows=-1)
+
+
 def test_train_step_skips_on_overflow_and_checked_step_grows(trajectories):
     stream = BatchStream(trajectories, input_sequence_length=6, batch_size=2, connectivity_radius=0.2)
     first = stream.batch(0)

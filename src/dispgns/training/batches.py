@@ -114,18 +114,28 @@ class ExampleIndex(NamedTuple):
         return int(self.trajectory.shape[0])
 
 
-def example_index(frame_counts: Sequence[int], window: int) -> ExampleIndex:
+def example_index(
+    frame_counts: Sequence[int], window: int, early_windows: int = 0, early_repeats: int = 1
+) -> ExampleIndex:
     """Every window of ``window`` consecutive frames, trajectory by trajectory, in order.
 
-    A trajectory of ``T`` frames gives ``max(0, T - window + 1)`` examples.
+    A trajectory of ``T`` frames gives ``max(0, T - window + 1)`` examples. The windows starting
+    at frames ``0 .. early_windows - 1`` are listed ``early_repeats`` times (the extra copies
+    after the trajectory's windows), so an epoch draws them that many times.
     """
     if window < 2:
         raise ValueError(f"window must be >= 2 frames, got {window}")
+    if int(early_windows) != early_windows or early_windows < 0:
+        raise ValueError(f"early_windows must be an integer >= 0, got {early_windows!r}")
+    if int(early_repeats) != early_repeats or early_repeats < 1:
+        raise ValueError(f"early_repeats must be an integer >= 1, got {early_repeats!r}")
     traj, start = [], []
     for k, t in enumerate(frame_counts):
         m = max(0, int(t) - window + 1)
-        traj.append(np.full((m,), k, np.int64))
-        start.append(np.arange(m, dtype=np.int64))
+        starts = np.arange(m, dtype=np.int64)
+        starts = np.concatenate([starts] + [starts[: int(early_windows)]] * (int(early_repeats) - 1))
+        traj.append(np.full(starts.shape, k, np.int64))
+        start.append(starts)
     return ExampleIndex(
         np.concatenate(traj) if traj else np.zeros((0,), np.int64),
         np.concatenate(start) if start else np.zeros((0,), np.int64),
@@ -207,6 +217,8 @@ class BatchStream:
         mirror: bool = False,
         shards: int = 1,
         quarter_turns: bool = False,
+        early_windows: int = 0,
+        early_repeats: int = 1,
     ):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -251,7 +263,7 @@ class BatchStream:
                 "quarter-turn augmentation needs 3-D trajectories in a box with equal horizontal sides "
                 f"symmetric about 0, got D = {self.dim} and {bounds}"
             )
-        self.index = example_index([x.shape[0] for x in self.positions], self.window)
+        self.index = example_index([x.shape[0] for x in self.positions], self.window, early_windows, early_repeats)
         if len(self.index) < self.batch_size:
             raise ValueError(
                 f"{len(self.index)} examples of {self.window} frames, fewer than one batch of {self.batch_size}"
@@ -308,6 +320,8 @@ class BatchStream:
             bounds=model_config.bounds,
             mirror=train_config.mirror_augmentation,
             quarter_turns=train_config.quarter_turn_augmentation,
+            early_windows=train_config.early_windows,
+            early_repeats=train_config.early_repeats,
             **kwargs,
         )
 

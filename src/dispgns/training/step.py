@@ -126,6 +126,14 @@ class TrainConfig:
         four equally likely (D = 3 only: the cube's walls and gravity are
         unchanged by it). With ``mirror_augmentation`` the model sees all
         eight symmetries of the square floor (False).
+      early_windows, early_repeats: the windows starting at the first
+        ``early_windows`` frames of each trajectory are drawn
+        ``early_repeats`` times per epoch (0 and 1, the defaults: every
+        window once). A rollout starts from a trajectory's first frames,
+        where its errors have the longest to grow, and those windows are
+        few. With ``pushforward_steps = k`` the loss's first target is a
+        window's frame ``C + k``: the first ``k`` frames a rollout predicts
+        are never targets unless ``k = 0``.
       num_steps: training steps of a full run (2 million in the paper).
       seed: seed of the parameter initialisation, data order and noise.
       log_every: steps between log records (mean loss since the last one).
@@ -159,6 +167,8 @@ class TrainConfig:
     unroll_loss: str = "acceleration"
     mirror_augmentation: bool = False
     quarter_turn_augmentation: bool = False
+    early_windows: int = 0
+    early_repeats: int = 1
     num_steps: int = 2_000_000
     seed: int = 0
     log_every: int = 100
@@ -173,7 +183,8 @@ class TrainConfig:
     def __post_init__(self):
         once = dict.fromkeys(("batch_size", "num_steps", "log_every", "keep_checkpoints", "unroll_steps"), 1)
         counts = ("validate_every", "checkpoint_every", "validation_examples", "validation_trajectories")
-        counts += ("validation_rollout_frames", "pushforward_steps")
+        counts += ("validation_rollout_frames", "pushforward_steps", "early_windows")
+        once["early_repeats"] = 1
         check_fields(
             self,
             integers={**once, **dict.fromkeys(counts, 0)},
