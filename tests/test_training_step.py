@@ -144,16 +144,23 @@ def test_early_windows_are_drawn_early_repeats_times_per_epoch(trajectories):
     stream = BatchStream.for_training(trajectories, TINY, config)
     plain = BatchStream.for_training(trajectories, TINY, dataclasses.replace(config, early_windows=0))
     assert stream.num_examples == plain.num_examples + 2 * 2 * 3
-    # An epoch draws every copy: the windows starting at frames 0 and 1 four times each per trajectory.
+    # An epoch draws every copy but the num_examples % B it leaves over: the windows starting at frames 0 and 1
+    # four times each per trajectory, frame 2 once.
     epoch = np.concatenate([stream.batch_examples(i) for i in range(stream.batches_per_epoch)])
-    full = np.concatenate([epoch, stream.epoch_order(0)[len(epoch) :]])  # with the few an epoch leaves over
-    starts = stream.index.start[full]
-    assert (starts == 0).sum() == 2 * 4 and (starts == 1).sum() == 2 * 4 and (starts == 2).sum() == 2
-    # A repeated window is the same frames (the batch holds the trajectory's window at that start).
-    b = stream.batch(0)
-    for k, (t, s) in enumerate(b.example):
-        n = trajectories[t].position.shape[1]
-        np.testing.assert_array_equal(b.position[k, :, :n], trajectories[t].position[s : s + 7])
+    left_over = stream.epoch_order(0)[len(epoch) :]
+    assert len(left_over) == stream.num_examples % 3
+    for frame, copies in [(0, 4), (1, 4), (2, 1)]:
+        drawn = (stream.index.start[epoch] == frame).sum()
+        assert copies * 2 - (stream.index.start[left_over] == frame).sum() == drawn
+    # A copy is a window like any other: a batch of the early ids (originals and copies) holds the trajectory's frames
+    # at their starts.
+    early = np.flatnonzero(stream.index.start < 2)
+    assert len(early) == 2 * 2 * 4
+    for part in np.array_split(early, 6):
+        b = stream.make_batch(part)
+        for k, (t, s) in enumerate(b.example):
+            n = trajectories[t].position.shape[1]
+            np.testing.assert_array_equal(b.position[k, :, :n], trajectories[t].position[s : s + 7])
     with pytest.raises(ValueError, match="early_repeats"):
         TrainConfig(early_repeats=0)
     with pytest.raises(ValueError, match="early_windows"):

@@ -17,6 +17,7 @@ field's share is told apart from the bands the graph does see:
   0-300 of these trajectories, or read from ``--betas``, an earlier output, for a fit out of sample), paired
   against its own rollout (``far_field.hybrid_rollouts``, ``s = 0`` and ``1``). This is an oracle (it uses the
   exact force law): it says how much a model that erred less along those bands would gain, not a lever to ship.
+  ``--without-far`` leaves the far band out of the correction (the bands within the graph alone).
 - with ``--own``: the model's own predicted acceleration is one more regressor (``beta > 0``: the model's steps
   are too short along themselves), and ``--correct`` scales the model's acceleration by ``1 + beta_own``. A
   ``--betas`` file with the bands' ``beta`` set to 0 gives that gain alone, which needs no force law.
@@ -35,7 +36,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from far_field import hybrid_rollouts, one_step_errors, scores, summarize  # sibling scripts
+from far_field import hybrid_rollouts, one_step_errors, paired_rows  # sibling scripts
 from handover import load
 
 from dispgns.data import load_dataset
@@ -47,7 +48,7 @@ EDGES = (1.122, 1.5, 2.5)
 
 
 def band_names(edges):
-    """``"r/sigma<1.122", ..., "far"``: one name per band of :func:`band_fields_fn`."""
+    """``"r/sigma 0-1.122", ..., "far (beyond the graph)"``: one name per band of :func:`band_fields_fn`."""
     cuts = (0.0, *edges, None)
     names = [f"r/sigma {lo:g}-{hi:g}" if hi else f"r/sigma >= {lo:g}, in graph" for lo, hi in zip(cuts, cuts[1:])]
     return names + ["far (beyond the graph)"]
@@ -73,6 +74,8 @@ def band_fields_fn(metadata, model_config, edges=EDGES):
         n = x.shape[0]
         valid = mask[:, None] & mask[None, :] & ~jnp.eye(n, dtype=bool)
         a_i, a_j = radius_m[:, None], radius_m[None, :]
+        # Coincident particles (r = 0) get no force, as in the physics; r2 = 1 keeps inf/NaN out of the masked branch.
+        valid = valid & (r2 > 0)
         coeff = jnp.where(valid, pair_force_over_distance(jnp.where(valid, r2, 1.0), a_i, a_j, physics), 0.0)
         r_over_sigma = jnp.sqrt(r2) / (a_i + a_j)
         inside = r2 < reach * reach
@@ -94,12 +97,13 @@ def fit(error, fields):
     f = fields.reshape(fields.shape[0], -1).astype(np.float64)
     e = error.reshape(-1).astype(np.float64)
     gram, rhs = f @ f.T, -(f @ e)
-    beta = np.linalg.solve(gram, rhs)
+    # lstsq, not solve: a band empty in one window (no contacts yet) makes the Gram matrix singular; its beta is 0.
+    beta = np.linalg.lstsq(gram, rhs, rcond=None)[0]
     residual = e + beta @ f
     return {
         "beta": beta.tolist(),
         "explained": float(1.0 - (residual @ residual) / (e @ e)),
-        "single_band_beta": (rhs / np.diag(gram)).tolist(),
+        "single_band_beta": (rhs / np.where(np.diag(gram) > 0, np.diag(gram), np.inf)).tolist(),
         "field_rms": np.sqrt((f * f).mean(1)).tolist(),
         "error_rms": float(np.sqrt((e * e).mean())),
     }
@@ -108,24 +112,29 @@ def fit(error, fields):
 def band_errors(params, model_config, metadata, trajectories, every, until, edges, own=False):
     """Per trajectory ``(frames, error (F, N, D), fields (K, F, N, D))`` at the true frames ``C-1, C-1+every, ...``.
 
-    With ``own`` the model's own predicted acceleration (normalised units per frame^2) is one more field, the last.
+    With ``own`` the model's own acceleration (normalised units per frame^2, before the box guard: what
+    ``far_field.hybrid_rollouts``' gain scales) is one more field, the last.
     """
     fields_fn = jax.jit(jax.vmap(band_fields_fn(metadata, model_config, edges), in_axes=(0, None, None), out_axes=1))
     out = []
     for traj in trajectories:
-        frames, error = one_step_errors(params, model_config, traj, every, until)
+        frames, error, acceleration = one_step_errors(params, model_config, traj, every, until)
         x, n = np.asarray(traj.position), traj.position.shape[1]
         radius_m = jnp.asarray(traj.initial_radius, jnp.float32)
         fields = np.asarray(fields_fn(jnp.asarray(x[frames]), radius_m, jnp.ones(n, bool)))
-        if own:  # predicted minus the constant-velocity position: x_pred - 2 x_t + x_(t-1)
-            acceleration = error + x[frames + 1] - 2 * x[frames] + x[frames - 1]
+        if own:
             fields = np.concatenate([fields, acceleration[None].astype(fields.dtype)])
         out.append((frames, error, fields))
     return out
 
 
 def windows_fit(per_trajectory, width=100):
-    """:func:`fit` per window of ``width`` frames, pooled over the trajectories, with each trajectory's own ``beta``."""
+    """:func:`fit` per window of ``width`` frames, pooled over the trajectories.
+
+    ``beta_standard_error`` is the spread of the trajectories' own fits (their standard deviation over the square
+    root of their number): a measure of how much ``beta`` varies between trajectories, not the pooled fit's own
+    error (the pooled ``beta`` weighs each trajectory by its fields' energy, not equally).
+    """
     last = max(int(frames[-1]) for frames, _, _ in per_trajectory)
     out = {}
     for first in range(0, last + 1, width):
@@ -155,12 +164,13 @@ def main():
     parser.add_argument("--own", action="store_true", help="the model's own acceleration as one more regressor")
     parser.add_argument("--correct", action="store_true", help="roll out with the fitted combination added")
     parser.add_argument("--betas", help="an earlier output whose frames-0-300 beta --correct uses")
+    parser.add_argument("--without-far", action="store_true", help="--correct with the far band's beta set to 0")
     parser.add_argument("--group", type=int, default=12, help="trajectories rolled out together")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     edges = tuple(args.edges)
-    if list(edges) != sorted(edges) or edges[0] <= 0:
-        parser.error(f"--edges must be increasing and > 0, got {args.edges}")
+    if edges[0] <= 0 or any(b <= a for a, b in zip(edges, edges[1:])):
+        parser.error(f"--edges must be strictly increasing and > 0, got {args.edges}")
 
     metadata, splits = load_dataset(args.data, args.splits)
     trajectories = [t for split in args.splits for t in splits[split][: args.limit]]
@@ -191,25 +201,22 @@ def main():
         # The model's own acceleration, if fitted, scales the model's step; the bands add their forces.
         gain = float(beta[-1]) if args.own else 0.0
         beta = beta[: len(edges) + 2]
+        if args.without_far:
+            beta = beta.at[-1].set(0.0)
         fields = band_fields_fn(metadata, config, edges)
         start = time.perf_counter()
         rollouts = hybrid_rollouts(
             params, config, metadata, trajectories, [0.0, 1.0], args.group,
             field=lambda x, rm, m: jnp.tensordot(beta, fields(x, rm, m), 1), gain=gain,
         )  # fmt: skip
-        truth = [np.asarray(t.position) for t in trajectories]
-        c = config.input_sequence_length
-        baseline, corrected = scores(rollouts[0.0], truth, c), scores(rollouts[1.0], truth, c)
         result["correction"] = {
             "beta": np.asarray(beta).tolist(),
             "gain": gain,
             "beta_from": args.betas or "this fit",
-            "model": {"per_trajectory": baseline, **summarize(baseline)},
-            "model + correction": {"per_trajectory": corrected, **summarize(corrected, baseline)},
+            "without_far": args.without_far,
+            **paired_rows(rollouts, trajectories, config.input_sequence_length, "model + correction"),
             "seconds": round(time.perf_counter() - start),
         }
-        for key, p in result["correction"]["model + correction"]["paired_to_s0"].items():
-            print(f"{key:10s} ratio {p['ratio']:.3f}  ({p['difference'] / p['standard_error']:+.1f} SE)", flush=True)
     write_atomic(Path(args.out), (json.dumps(result, indent=1) + "\n").encode())
     print("wrote", args.out)
 

@@ -150,7 +150,7 @@ def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group,
     position, radius, radius_m, mask = padded(trajectories)
     c, t_len = model_config.input_sequence_length, position.shape[1]
     capacity = fit_capacity(position, model_config, mask=mask[:, None, :], margin=0.5)
-    far = field or far_field_fn(metadata, model_config)
+    far = far_field_fn(metadata, model_config) if field is None else field
     low, high = (jnp.asarray(model_config.bounds, jnp.float32)[:, k] for k in (0, 1))
 
     def rollout(window, r, rm, m, s):
@@ -188,16 +188,29 @@ def hybrid_rollouts(params, model_config, metadata, trajectories, scales, group,
     return out
 
 
+def paired_rows(rollouts, trajectories, c, name):
+    """``{"model": ..., name: ...}``: the scores of ``rollouts[0.0]`` and ``rollouts[1.0]``, the second paired to the
+    first (:func:`scores`, :func:`summarize`), each paired window printed as its ratio and standard errors."""
+    truth = [np.asarray(t.position) for t in trajectories]
+    baseline, other = scores(rollouts[0.0], truth, c), scores(rollouts[1.0], truth, c)
+    rows = {"model": {"per_trajectory": baseline, **summarize(baseline)}}
+    rows[name] = {"per_trajectory": other, **summarize(other, baseline)}
+    for key, p in rows[name]["paired_to_s0"].items():
+        print(f"{key:10s} ratio {p['ratio']:.3f}  ({p['difference'] / p['standard_error']:+.1f} SE)", flush=True)
+    return rows
+
+
 def beta(error, field):
     """``-<e, f> / <f, f>`` over all entries: 1 for ``e = -f`` (blind to ``f``), 0 for ``e`` orthogonal to ``f``."""
     return float(-(error * field).sum() / (field * field).sum())
 
 
 def one_step_errors(params, model_config, traj, every, until):
-    """``(frames, error)``: the model's one-step next-position errors ``(F, N, D)`` from the true frames.
+    """``(frames, error, acceleration)``: the model's one-step predictions from the true frames.
 
     ``frames`` are the last input frames ``C-1, C-1+every, ...`` below ``until`` (and below the trajectory's last
-    frame); ``error`` is the predicted minus the true next position (normalised units).
+    frame); ``error`` ``(F, N, D)`` is the predicted minus the true next position and ``acceleration`` ``(F, N, D)``
+    the model's acceleration (before the box guard), both in normalised units.
     """
     c = model_config.input_sequence_length
     x = np.asarray(traj.position)
@@ -209,7 +222,7 @@ def one_step_errors(params, model_config, traj, every, until):
     result = step(jnp.asarray(np.stack([x[t - c + 1 : t + 1] for t in frames])))
     if np.asarray(result.overflow).any():
         raise RuntimeError(f"trajectory {traj.attrs.get('index', '?')}: a one-step prediction outgrew its graph")
-    return frames, np.asarray(result.position) - x[frames + 1]
+    return frames, np.asarray(result.position) - x[frames + 1], np.asarray(result.acceleration)
 
 
 def projection(params, model_config, metadata, trajectories, every, until):
@@ -221,7 +234,7 @@ def projection(params, model_config, metadata, trajectories, every, until):
     far = jax.jit(jax.vmap(far_field_fn(metadata, model_config), in_axes=(0, None, None)))
     out = []
     for traj in trajectories:
-        frames, error = one_step_errors(params, model_config, traj, every, until)
+        frames, error, _ = one_step_errors(params, model_config, traj, every, until)
         x, n = np.asarray(traj.position), traj.position.shape[1]
         field = np.asarray(far(jnp.asarray(x[frames]), jnp.asarray(traj.initial_radius, jnp.float32), np.ones(n, bool)))
         rows = {}

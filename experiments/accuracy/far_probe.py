@@ -1,10 +1,10 @@
 """Can a model learn the far field from generic inputs? A linear probe on shell descriptors (issue 19).
 
-``band_projection.py`` found that the shipped model's one-step error follows one part of the pair force only: the
-far field (pairs beyond the graph's 0.2 L), against which it errs by ~2.4 far fields, and that adding that
-multiple of the exact far field at every step lowers its rollout error. The exact far field needs the force law;
-a learned simulator does not have it. This asks whether generic inputs carry the same information: per particle
-``i``, descriptors of its surroundings out to ~0.45 L that know nothing of the force law,
+``band_projection.py`` found the shipped model's one-step error runs against the far field (the pairs beyond the
+graph's 0.2 L) by ~2.4 far fields, and that of the bands of the pair force the far field is the only one whose
+correction at every step lowers the rollout error over the first hundreds of frames. The exact far field needs the
+force law; a learned simulator does not have it. This asks whether generic inputs carry the same information:
+per particle ``i``, descriptors of its surroundings out to ~0.45 L that know nothing of the force law,
 
     V_i[k, q, p] = (a_i / a_ref)^p  sum_j  (sigma_ij / (2 a_ref))^q  phi_k(r_ij)  (x_j - x_i) / r_ij
 
@@ -34,7 +34,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from far_field import hybrid_rollouts, one_step_errors, scores, summarize  # sibling scripts
+from far_field import hybrid_rollouts, one_step_errors, paired_rows  # sibling scripts
 from handover import load
 
 from dispgns.data import load_dataset
@@ -43,10 +43,14 @@ from dispgns.files import write_atomic
 CENTRES = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
 """Shell centres in normalised units (the box is [-1, 1]; the graph reaches 0.2)."""
 SIGMA_POWERS = (0, 4, 8)
+"""Powers of ``sigma_ij / (2 a_ref)`` weighing each neighbour (the pair force grows steeply with the radii)."""
 SELF_POWERS = (0, -2)
+"""Powers of ``a_i / a_ref`` multiplying particle ``i``'s sums (an acceleration is a force over a mass ~ a_i^2)."""
+A_REF = 0.035
+"""Reference radius (normalised units: 3.5 mm, the middle of the training radii)."""
 
 
-def shell_features_fn(centres=CENTRES, width=0.05, sigma_powers=SIGMA_POWERS, self_powers=SELF_POWERS, a_ref=0.035):
+def shell_features_fn(centres=CENTRES, width=0.05, sigma_powers=SIGMA_POWERS, self_powers=SELF_POWERS, a_ref=A_REF):
     """``features(x, radius, mask) -> (N, F, D)``: the shell descriptors ``V`` (module docstring), all pairs.
 
     ``x`` ``(N, D)`` and ``radius`` ``(N,)`` normalised; ``mask`` ``(N,)`` (padding neither has nor adds any).
@@ -76,7 +80,7 @@ def design(params, config, trajectories, features, every, until):
     batched = jax.jit(jax.vmap(features, in_axes=(0, None, None)))
     xs, ys = [], []
     for traj in trajectories:
-        frames, error = one_step_errors(params, config, traj, every, until)
+        frames, error, _ = one_step_errors(params, config, traj, every, until)
         n = traj.position.shape[1]
         v = np.asarray(batched(jnp.asarray(traj.position[frames]), jnp.asarray(traj.radius), jnp.ones(n, bool)))
         xs.append(v.transpose(0, 1, 3, 2).reshape(-1, v.shape[2]).astype(np.float64))  # (frame, i, D) rows
@@ -100,7 +104,7 @@ def explained(x, y, c):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--fit-data", required=True)
+    parser.add_argument("--fit-data", help="trajectories the head is fitted on (not with --head)")
     parser.add_argument("--fit-split", default="train")
     parser.add_argument("--fit-count", type=int, default=24, help="the first N trajectories of --fit-split")
     parser.add_argument("--data", required=True, help="where the head is scored (out of sample)")
@@ -117,12 +121,25 @@ def main():
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
 
+    if bool(args.head) == bool(args.fit_data):
+        parser.error("give either --fit-data (fit a head) or --head (use an earlier one), not both or neither")
     params, config = load(args.model)
-    features = shell_features_fn(tuple(args.centres), args.width)
-    result = {"model": args.model, "centres": args.centres, "width": args.width}
+    # Every setting of the descriptors, recorded: a head is only valid with the descriptors it was fitted on.
+    settings = {
+        "centres": list(args.centres),
+        "width": args.width,
+        "sigma_powers": list(SIGMA_POWERS),
+        "self_powers": list(SELF_POWERS),
+        "a_ref": A_REF,
+    }
+    features = shell_features_fn(tuple(args.centres), args.width, SIGMA_POWERS, SELF_POWERS, A_REF)
+    result = {"model": args.model, "descriptors": settings}
     start = time.perf_counter()
     if args.head:
         previous = json.loads(Path(args.head).read_text())
+        if previous.get("descriptors") != settings:
+            fitted = previous.get("descriptors")
+            parser.error(f"{args.head}: its head was fitted on descriptors {fitted}, not these {settings}")
         coefficients = np.asarray(previous["coefficients"])
         result |= {"head_from": args.head, "fit": previous["fit"]}
     else:
@@ -152,16 +169,10 @@ def main():
 
         start = time.perf_counter()
         rollouts = hybrid_rollouts(params, config, metadata, trajectories, [0.0, 1.0], args.group, field=head)
-        truth = [np.asarray(t.position) for t in trajectories]
-        c = config.input_sequence_length
-        baseline, corrected = scores(rollouts[0.0], truth, c), scores(rollouts[1.0], truth, c)
         result["rollouts"] = {
-            "model": {"per_trajectory": baseline, **summarize(baseline)},
-            "model + head": {"per_trajectory": corrected, **summarize(corrected, baseline)},
+            **paired_rows(rollouts, trajectories, config.input_sequence_length, "model + head"),
             "seconds": round(time.perf_counter() - start),
         }
-        for key, p in result["rollouts"]["model + head"]["paired_to_s0"].items():
-            print(f"{key:10s} ratio {p['ratio']:.3f}  ({p['difference'] / p['standard_error']:+.1f} SE)", flush=True)
     write_atomic(Path(args.out), (json.dumps(result, indent=1) + "\n").encode())
     print("wrote", args.out)
 

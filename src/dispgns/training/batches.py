@@ -105,7 +105,10 @@ class Batch:
 
 
 class ExampleIndex(NamedTuple):
-    """All windows of a set of trajectories: ``trajectory (M,)`` and ``start (M,)`` int arrays."""
+    """The windows of a set of trajectories (some listed more than once, see :func:`example_index`).
+
+    ``trajectory (M,)`` and ``start (M,)`` int arrays.
+    """
 
     trajectory: _WindowIds
     start: _WindowIds
@@ -121,7 +124,8 @@ def example_index(
 
     A trajectory of ``T`` frames gives ``max(0, T - window + 1)`` examples. The windows starting
     at frames ``0 .. early_windows - 1`` are listed ``early_repeats`` times (the extra copies
-    after the trajectory's windows), so an epoch draws them that many times.
+    after the trajectory's windows), so an epoch draws them that many times (less any of the few
+    examples an epoch leaves over, see :class:`BatchStream`).
     """
     if window < 2:
         raise ValueError(f"window must be >= 2 frames, got {window}")
@@ -191,6 +195,9 @@ class BatchStream:
         vertical axis, ``k`` uniform in 0..3, drawn per batch index from a
         stream of its own (the mirror draws are those without it); ``D = 3``
         and a box whose two horizontal sides are equal and symmetric about 0.
+      early_windows, early_repeats: the windows starting at each
+        trajectory's first ``early_windows`` frames are examples
+        ``early_repeats`` times over (:func:`example_index`).
       shards: the batch is split into this many equal parts, one per device
         (data parallelism, :mod:`dispgns.training.distributed`): the edge
         budget is then that of the largest part's merged graph, the same in

@@ -128,8 +128,8 @@ class TrainConfig:
         eight symmetries of the square floor (False).
       early_windows, early_repeats: the windows starting at the first
         ``early_windows`` frames of each trajectory are drawn
-        ``early_repeats`` times per epoch (0 and 1, the defaults: every
-        window once). A rollout starts from a trajectory's first frames,
+        ``early_repeats`` times per epoch (less the few examples an epoch
+        leaves over; 0 and 1, the defaults: every window once). A rollout starts from a trajectory's first frames,
         where its errors have the longest to grow, and those windows are
         few. With ``pushforward_steps = k`` the loss's first target is a
         window's frame ``C + k``: the first ``k`` frames a rollout predicts
