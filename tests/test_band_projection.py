@@ -99,6 +99,13 @@ def test_windows_pool_the_trajectories_and_report_each_ones_spread(bands):
     np.testing.assert_allclose(got["200-300"]["beta"][1], -1.0, rtol=0.01)
     assert 1.0 < got["0-100"]["beta"][0] < 1.2
     np.testing.assert_allclose(got["0-100"]["beta_standard_error"][0], 0.1 / np.sqrt(3), rtol=1e-6)
+    # A trajectory whose second band is empty (no pairs there yet) adds no beta of 0 to that band's spread.
+    frames, error, fields = per[0]
+    empty = fields.copy()
+    empty[1] = 0.0
+    with_empty = bands.windows_fit(per + [(frames, -(1.05 * empty[0]), empty)])
+    np.testing.assert_allclose(with_empty["0-100"]["beta_standard_error"][1], 0.0, atol=1e-12)
+    assert with_empty["0-100"]["beta_standard_error"][0] > 0
 
 
 def test_the_correction_at_zero_betas_is_the_models_own_rollout(bands, far_field, tiny_pair):

@@ -19,8 +19,9 @@ field's share is told apart from the bands the graph does see:
   exact force law): it says how much a model that erred less along those bands would gain, not a lever to ship.
   ``--without-far`` leaves the far band out of the correction (the bands within the graph alone).
 - with ``--own``: the model's own predicted acceleration is one more regressor (``beta > 0``: the model's steps
-  are too short along themselves), and ``--correct`` scales the model's acceleration by ``1 + beta_own``. A
-  ``--betas`` file with the bands' ``beta`` set to 0 gives that gain alone, which needs no force law.
+  are too short along themselves), and ``--correct`` scales the model's acceleration by ``1 + beta_own``. The
+  error holds the model's own acceleration, so the joint ``beta_own`` is confounded with the bands' (it differs
+  from ``single_band_beta``, the own acceleration fitted alone, which is the gain that needs no force law).
 
     python experiments/accuracy/band_projection.py --data datasets/acc400-valid --splits valid \\
         --model sedimentation-2d --out experiments/accuracy/results/band_projection_valid12.json
@@ -147,7 +148,12 @@ def windows_fit(per_trajectory, width=100):
             np.concatenate([f.reshape(f.shape[0], -1) for _, f in picks], 1),
         )
         own = np.array([fit(e, f)["beta"] for e, f in picks])
-        pooled["beta_standard_error"] = (own.std(0, ddof=1) / np.sqrt(len(own))).tolist() if len(own) > 1 else None
+        # A band empty in a trajectory's window has no beta there (fit gives 0): left out of the spread.
+        present = np.array([(f.reshape(f.shape[0], -1) ** 2).sum(1) > 0 for _, f in picks])
+        own = np.where(present, own, np.nan)
+        count = present.sum(0)
+        spread = np.nanstd(np.where(count > 1, own, 0.0), 0, ddof=1) / np.sqrt(np.maximum(count, 1))
+        pooled["beta_standard_error"] = [float(v) if n > 1 else None for v, n in zip(spread, count)]
         out[f"{first}-{first + width}"] = pooled
     return out
 
@@ -187,7 +193,8 @@ def main():
     for window, w in result["windows"].items():
         print(window, "explained", f"{w['explained']:.4f}", flush=True)
         for k, name in enumerate(names):
-            se = w["beta_standard_error"][k] if w["beta_standard_error"] else float("nan")
+            se = w["beta_standard_error"][k]
+            se = float("nan") if se is None else se
             print(
                 f"  {name:28s} beta {w['beta'][k]:+.3f} ± {se:.3f}  single {w['single_band_beta'][k]:+.3f}"
                 f"  field rms {w['field_rms'][k]:.2e}  (error rms {w['error_rms']:.2e})",

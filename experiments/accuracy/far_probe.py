@@ -140,6 +140,8 @@ def main():
         if previous.get("descriptors") != settings:
             fitted = previous.get("descriptors")
             parser.error(f"{args.head}: its head was fitted on descriptors {fitted}, not these {settings}")
+        if previous.get("model") != args.model:
+            parser.error(f"{args.head}: its head was fitted on {previous.get('model')}'s errors, not {args.model}'s")
         coefficients = np.asarray(previous["coefficients"])
         result |= {"head_from": args.head, "fit": previous["fit"]}
     else:
