@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments" / "accuracy"
 
@@ -27,3 +28,8 @@ def load_experiment(name: str):
     finally:
         sys.path.remove(str(EXPERIMENTS))
     return module
+
+
+def experiment_fixture(name: str, fixture: str | None = None):
+    """A module-scoped pytest fixture (named ``fixture``, default ``name``) giving ``experiments/accuracy/NAME.py``."""
+    return pytest.fixture(scope="module", name=fixture or name)(lambda: load_experiment(name))

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from experiment_scripts import NORM, load_experiment
+from experiment_scripts import NORM, experiment_fixture
 
 from dispgns.model import ModelConfig, init_params
 from dispgns.physics.forces import interaction_force, particle_mass
@@ -15,14 +15,10 @@ from dispgns.simulator import fit_capacity, predict_step
 CONFIG = ModelConfig(connectivity_radius=0.2, latent_size=8, hidden_size=8, message_passing_steps=1)
 
 
-@pytest.fixture(scope="module")
-def bands():
-    return load_experiment("band_projection")
+bands = experiment_fixture("band_projection", "bands")
 
 
-@pytest.fixture(scope="module")
-def far_field():
-    return load_experiment("far_field")
+far_field = experiment_fixture("far_field")
 
 
 def test_the_bands_partition_the_all_pairs_force_and_the_last_is_the_far_field(bands, far_field, tiny_pair):

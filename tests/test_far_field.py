@@ -6,21 +6,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from experiment_scripts import NORM, load_experiment
+from experiment_scripts import NORM, experiment_fixture
 
 from dispgns.model import ModelConfig, init_params
 from dispgns.physics.forces import pair_force_over_distance, particle_mass
 from dispgns.simulator import fit_capacity, rollout_scan
 
-
-@pytest.fixture(scope="module")
-def far_field():
-    return load_experiment("far_field")
+far_field = experiment_fixture("far_field")
 
 
-@pytest.fixture(scope="module")
-def error_places():
-    return load_experiment("error_places")
+error_places = experiment_fixture("error_places")
 
 
 def test_the_far_field_is_the_pair_force_beyond_the_reach_as_a_per_frame_acceleration(far_field, tiny_pair):

@@ -3,12 +3,9 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from experiment_scripts import load_experiment
+from experiment_scripts import experiment_fixture
 
-
-@pytest.fixture(scope="module")
-def probe():
-    return load_experiment("far_probe")
+probe = experiment_fixture("far_probe", "probe")
 
 
 def test_the_shell_descriptors_by_hand(probe):

@@ -37,12 +37,12 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from far_field import hybrid_rollouts, one_step_errors, paired_rows  # sibling scripts
+from far_field import frame_acceleration, hybrid_rollouts, one_step_errors, paired_rows  # sibling scripts
 from handover import load
 
 from dispgns.data import load_dataset
 from dispgns.files import write_atomic
-from dispgns.physics.forces import pair_force_over_distance, particle_mass
+from dispgns.physics.forces import pair_force_over_distance
 
 EDGES = (1.122, 1.5, 2.5)
 """Band edges within the graph in ``r / (a_i + a_j)``: the force's zero (``2^(1/6)``), the well's end, the tail."""
@@ -64,7 +64,7 @@ def band_fields_fn(metadata, model_config, edges=EDGES):
     all-pairs force (normalised units per frame^2, ``F T^2 / (m L)`` as in ``far_field.far_field_fn``).
     """
     physics = metadata.physics_config
-    scale, frame_time = metadata.length_scale, metadata.frame_dt
+    scale = metadata.length_scale
     reach = model_config.connectivity_radius * scale
     bounds = jnp.asarray((0.0, *edges, np.inf))
 
@@ -83,8 +83,7 @@ def band_fields_fn(metadata, model_config, edges=EDGES):
         masks = [inside & (r_over_sigma >= lo) & (r_over_sigma < hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
         masks.append(~inside)
         force = jnp.stack([jnp.einsum("ij,ijd->id", jnp.where(m, coeff, 0.0), d) for m in masks])
-        acc = force / particle_mass(radius_m, physics, x.shape[-1])[None, :, None] * (frame_time**2 / scale)
-        return jnp.where(mask[None, :, None], acc, 0.0)
+        return jnp.where(mask[None, :, None], frame_acceleration(force, radius_m, metadata), 0.0)
 
     return fields
 

@@ -22,16 +22,13 @@ import argparse
 import json
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from handover import load  # the sibling script, on sys.path as this one's folder
+from far_field import one_step_errors  # sibling scripts, on sys.path as this one's folder
+from handover import load
 
-from dispgns import fit_capacity
 from dispgns.data import load_dataset
 from dispgns.data.format import read_split
 from dispgns.files import write_atomic
-from dispgns.simulator import predict_step
 
 FRAME_WINDOWS = ((0, 60), (60, 200), (200, 300), (300, 400), (400, None))
 """Windows of the input's last frame (absolute frame indices)."""
@@ -65,24 +62,14 @@ def classes(values, edges, name):
 
 def one_step(params, config, trajectories, every):
     """Squared one-step errors and the particles' situations, flattened over frames and particles."""
-    c = config.input_sequence_length
     parts = {"error2": [], "frame": [], "wall_gap": [], "neighbour": []}
     for traj in trajectories:
         x, a = np.asarray(traj.position), np.asarray(traj.radius)
-        capacity = fit_capacity(x, config, margin=0.1)
-        step = jax.jit(
-            jax.vmap(lambda w, a=a, cap=capacity: predict_step(params, w, a, model_config=config, capacity=cap))
-        )
-        frames = np.arange(c - 1, x.shape[0] - 1, every)
-        for lo in range(0, len(frames), 64):
-            chunk = frames[lo : lo + 64]
-            result = step(jnp.asarray(np.stack([x[t - c + 1 : t + 1] for t in chunk])))
-            if np.asarray(result.overflow).any():
-                raise RuntimeError("a one-step prediction outgrew its graph capacity")
-            parts["error2"].append(((np.asarray(result.position) - x[chunk + 1]) ** 2).sum(-1).ravel())
-            parts["frame"].append(np.repeat(chunk, x.shape[1]))
-            parts["wall_gap"].append(wall_gap(x[chunk], a).min(-1).ravel())
-            parts["neighbour"].append(nearest_neighbour(x[chunk], a).ravel())
+        frames, error, _ = one_step_errors(params, config, traj, every, x.shape[0])
+        parts["error2"].append((error**2).sum(-1).ravel())
+        parts["frame"].append(np.repeat(frames, x.shape[1]))
+        parts["wall_gap"].append(wall_gap(x[frames], a).min(-1).ravel())
+        parts["neighbour"].append(nearest_neighbour(x[frames], a).ravel())
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 

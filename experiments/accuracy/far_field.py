@@ -115,6 +115,17 @@ def padded(trajectories):
     return position, radius, radius_m, mask
 
 
+def frame_acceleration(force, radius_m, metadata):
+    """``force`` ``(..., N, D)`` in N held for one frame, as a per-frame acceleration ``F T^2 / (m L)``.
+
+    A force held for one frame changes the per-frame velocity by ``F T / m``, the position by ``F T^2 / m`` (the
+    Euler sub-steps sum to it exactly when the force is constant; the drag, with a time of 15-40 frames, takes a few
+    percent off within the frame, left out here); ``/ L`` gives normalised units. ``radius_m`` ``(N,)`` in m.
+    """
+    mass = particle_mass(radius_m, metadata.physics_config, force.shape[-1])[:, None]
+    return force / mass * (metadata.frame_dt**2 / metadata.length_scale)
+
+
 def far_field_fn(metadata, model_config):
     """``far(x, radius_m, mask) -> (N, D)``: the far field as a per-frame acceleration (normalised units per frame^2).
 
@@ -123,7 +134,7 @@ def far_field_fn(metadata, model_config):
     model's connectivity radius apart (the graph keeps the nearer ones).
     """
     physics = metadata.physics_config
-    scale, frame_time = metadata.length_scale, metadata.frame_dt
+    scale = metadata.length_scale
     reach = model_config.connectivity_radius * scale
     everything, near = dataclasses.replace(physics, cutoff=None), dataclasses.replace(physics, cutoff=reach)
 
@@ -131,11 +142,7 @@ def far_field_fn(metadata, model_config):
         xm, index = x * scale, jnp.arange(x.shape[0])
         force = interaction_force(xm, index, xm, radius_m, mask, everything)
         force = force - interaction_force(xm, index, xm, radius_m, mask, near)
-        # A force held for one frame changes the per-frame velocity by F T / m, the position by F T^2 / m (the
-        # Euler sub-steps sum to it exactly when the force is constant; the drag, with a time of 15-40 frames,
-        # takes a few percent off within the frame, left out here).
-        acc = force / particle_mass(radius_m, physics, x.shape[-1])[:, None] * (frame_time**2 / scale)
-        return jnp.where(mask[:, None], acc, 0.0)
+        return jnp.where(mask[:, None], frame_acceleration(force, radius_m, metadata), 0.0)
 
     return far
 
@@ -205,12 +212,12 @@ def beta(error, field):
     return float(-(error * field).sum() / (field * field).sum())
 
 
-def one_step_errors(params, model_config, traj, every, until):
+def one_step_errors(params, model_config, traj, every, until, chunk=64):
     """``(frames, error, acceleration)``: the model's one-step predictions from the true frames.
 
     ``frames`` are the last input frames ``C-1, C-1+every, ...`` below ``until`` (and below the trajectory's last
     frame); ``error`` ``(F, N, D)`` is the predicted minus the true next position and ``acceleration`` ``(F, N, D)``
-    the model's acceleration (before the box guard), both in normalised units.
+    the model's acceleration (before the box guard), both in normalised units. Predicted ``chunk`` windows at a time.
     """
     c = model_config.input_sequence_length
     x = np.asarray(traj.position)
@@ -219,10 +226,15 @@ def one_step_errors(params, model_config, traj, every, until):
         jax.vmap(lambda w, a=traj.radius: predict_step(params, w, a, model_config=model_config, capacity=capacity))
     )
     frames = np.arange(c - 1, min(until, x.shape[0] - 1), every)
-    result = step(jnp.asarray(np.stack([x[t - c + 1 : t + 1] for t in frames])))
-    if np.asarray(result.overflow).any():
-        raise RuntimeError(f"trajectory {traj.attrs.get('index', '?')}: a one-step prediction outgrew its graph")
-    return frames, np.asarray(result.position) - x[frames + 1], np.asarray(result.acceleration)
+    errors, accelerations = [], []
+    for lo in range(0, len(frames), chunk):
+        part = frames[lo : lo + chunk]
+        result = step(jnp.asarray(np.stack([x[t - c + 1 : t + 1] for t in part])))
+        if np.asarray(result.overflow).any():
+            raise RuntimeError(f"trajectory {traj.attrs.get('index', '?')}: a one-step prediction outgrew its graph")
+        errors.append(np.asarray(result.position) - x[part + 1])
+        accelerations.append(np.asarray(result.acceleration))
+    return frames, np.concatenate(errors), np.concatenate(accelerations)
 
 
 def projection(params, model_config, metadata, trajectories, every, until):
