@@ -136,3 +136,19 @@ def test_the_own_regressor_is_the_models_predicted_acceleration(bands, tiny_pair
         step = predict_step(params, x[t - 5 : t + 1], short[0].radius, model_config=config, capacity=capacity)
         np.testing.assert_allclose(fields[-1, j], np.asarray(step.acceleration), rtol=1e-4, atol=1e-8)
         np.testing.assert_allclose(error[j], np.asarray(step.position) - x[t + 1], atol=1e-6)
+
+
+def test_the_correction_terms_by_option(bands):
+    fit = {"windows": {"all": {"beta": [0.1, 0.2, 2.5, 0.3], "single_band_beta": [0.0, 0.0, 2.4, 0.05]}}}
+    beta, gain = bands.correction_terms(fit, 3, own=True)
+    np.testing.assert_allclose(beta, [0.1, 0.2, 2.5], rtol=1e-6)
+    assert gain == pytest.approx(0.3)
+    beta, gain = bands.correction_terms(fit, 3, own=True, without_far=True)
+    np.testing.assert_allclose(beta, [0.1, 0.2, 0.0], rtol=1e-6)
+    beta, gain = bands.correction_terms(fit, 3, own=True, gain_only=True)
+    np.testing.assert_array_equal(beta, np.zeros(3))
+    assert gain == pytest.approx(0.05)
+    without_own = {"windows": {"all": {"beta": [0.1, 0.2, 2.5], "single_band_beta": [0.0, 0.0, 2.4]}}}
+    beta, gain = bands.correction_terms(without_own, 3, own=False)
+    np.testing.assert_allclose(beta, [0.1, 0.2, 2.5], rtol=1e-6)
+    assert gain == 0.0

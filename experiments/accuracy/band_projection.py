@@ -22,6 +22,7 @@ field's share is told apart from the bands the graph does see:
   are too short along themselves), and ``--correct`` scales the model's acceleration by ``1 + beta_own``. The
   error holds the model's own acceleration, so the joint ``beta_own`` is confounded with the bands' (it differs
   from ``single_band_beta``, the own acceleration fitted alone, which is the gain that needs no force law).
+  ``--gain-only`` rolls out with that gain alone (the bands' ``beta`` set to 0).
 
     python experiments/accuracy/band_projection.py --data datasets/acc400-valid --splits valid \\
         --model sedimentation-2d --out experiments/accuracy/results/band_projection_valid12.json
@@ -157,6 +158,23 @@ def windows_fit(per_trajectory, width=100):
     return out
 
 
+def correction_terms(fit, n_bands, own, without_far=False, gain_only=False):
+    """``(beta (n_bands,), gain)`` of the correction ``--correct`` rolls out, from a fit's frames-0-300 record.
+
+    The bands add ``sum_k beta_k f_k``; the model's own acceleration, if fitted (``own``), scales the model's step by
+    ``1 + gain``. ``without_far`` zeroes the far band's ``beta``; ``gain_only`` keeps the own acceleration's
+    single-regressor ``beta`` alone (the gain that needs no force law; the joint one is confounded with the bands').
+    """
+    window = fit["windows"]["all"]
+    beta = jnp.asarray(window["beta"][:n_bands], jnp.float32)
+    gain = float(window["beta"][n_bands]) if own else 0.0
+    if without_far:
+        beta = beta.at[-1].set(0.0)
+    if gain_only:
+        beta, gain = jnp.zeros_like(beta), float(window["single_band_beta"][n_bands])
+    return beta, gain
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", required=True)
@@ -170,12 +188,18 @@ def main():
     parser.add_argument("--correct", action="store_true", help="roll out with the fitted combination added")
     parser.add_argument("--betas", help="an earlier output whose frames-0-300 beta --correct uses")
     parser.add_argument("--without-far", action="store_true", help="--correct with the far band's beta set to 0")
+    parser.add_argument(
+        "--gain-only", action="store_true",
+        help="--correct with the own acceleration's single-regressor beta alone (a scalar gain; needs --own)",
+    )  # fmt: skip
     parser.add_argument("--group", type=int, default=12, help="trajectories rolled out together")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     edges = tuple(args.edges)
     if edges[0] <= 0 or any(b <= a for a, b in zip(edges, edges[1:])):
         parser.error(f"--edges must be strictly increasing and > 0, got {args.edges}")
+    if args.gain_only and not (args.own and args.correct):
+        parser.error("--gain-only needs --own and --correct")
 
     metadata, splits = load_dataset(args.data, args.splits)
     trajectories = [t for split in args.splits for t in splits[split][: args.limit]]
@@ -203,12 +227,7 @@ def main():
         source = json.loads(Path(args.betas).read_text()) if args.betas else result
         if args.betas and source["bands"] != names:
             parser.error(f"{args.betas}: its bands {source['bands']} are not these {names}")
-        beta = jnp.asarray(source["windows"]["all"]["beta"], jnp.float32)
-        # The model's own acceleration, if fitted, scales the model's step; the bands add their forces.
-        gain = float(beta[-1]) if args.own else 0.0
-        beta = beta[: len(edges) + 2]
-        if args.without_far:
-            beta = beta.at[-1].set(0.0)
+        beta, gain = correction_terms(source, len(edges) + 2, args.own, args.without_far, args.gain_only)
         fields = band_fields_fn(metadata, config, edges)
         start = time.perf_counter()
         rollouts = hybrid_rollouts(
@@ -220,6 +239,7 @@ def main():
             "gain": gain,
             "beta_from": args.betas or "this fit",
             "without_far": args.without_far,
+            "gain_only": args.gain_only,
             **paired_rows(rollouts, trajectories, config.input_sequence_length, "model + correction"),
             "seconds": round(time.perf_counter() - start),
         }
