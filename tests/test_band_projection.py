@@ -145,6 +145,7 @@ def test_the_correction_terms_by_option(bands):
     assert gain == pytest.approx(0.3)
     beta, gain = bands.correction_terms(fit, 3, own=True, without_far=True)
     np.testing.assert_allclose(beta, [0.1, 0.2, 0.0], rtol=1e-6)
+    assert gain == pytest.approx(0.3)
     beta, gain = bands.correction_terms(fit, 3, own=True, gain_only=True)
     np.testing.assert_array_equal(beta, np.zeros(3))
     assert gain == pytest.approx(0.05)

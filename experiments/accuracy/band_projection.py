@@ -159,7 +159,7 @@ def windows_fit(per_trajectory, width=100):
 
 
 def correction_terms(fit, n_bands, own, without_far=False, gain_only=False):
-    """``(beta (n_bands,), gain)`` of the correction ``--correct`` rolls out, from a fit's frames-0-300 record.
+    """``(beta (n_bands,), gain)`` of the correction ``--correct`` rolls out, from a fit's frames 0-``until`` record.
 
     The bands add ``sum_k beta_k f_k``; the model's own acceleration, if fitted (``own``), scales the model's step by
     ``1 + gain``. ``without_far`` zeroes the far band's ``beta``; ``gain_only`` keeps the own acceleration's
@@ -186,11 +186,11 @@ def main():
     parser.add_argument("--limit", type=int, default=None, help="the first N trajectories of each split")
     parser.add_argument("--own", action="store_true", help="the model's own acceleration as one more regressor")
     parser.add_argument("--correct", action="store_true", help="roll out with the fitted combination added")
-    parser.add_argument("--betas", help="an earlier output whose frames-0-300 beta --correct uses")
+    parser.add_argument("--betas", help="an earlier output whose frames 0-until beta --correct uses")
     parser.add_argument("--without-far", action="store_true", help="--correct with the far band's beta set to 0")
     parser.add_argument(
         "--gain-only", action="store_true",
-        help="--correct with the own acceleration's single-regressor beta alone (a scalar gain; needs --own)",
+        help="--correct with the own acceleration's single-regressor beta alone (a scalar gain; needs --own --correct)",
     )  # fmt: skip
     parser.add_argument("--group", type=int, default=12, help="trajectories rolled out together")
     parser.add_argument("--out", required=True)
@@ -200,6 +200,8 @@ def main():
         parser.error(f"--edges must be strictly increasing and > 0, got {args.edges}")
     if args.gain_only and not (args.own and args.correct):
         parser.error("--gain-only needs --own and --correct")
+    if args.gain_only and args.without_far:
+        parser.error("--gain-only sets every band's beta to 0: --without-far has nothing to do")
 
     metadata, splits = load_dataset(args.data, args.splits)
     trajectories = [t for split in args.splits for t in splits[split][: args.limit]]
