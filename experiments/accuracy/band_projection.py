@@ -231,11 +231,19 @@ def main():
             parser.error(f"{args.betas}: its bands {source['bands']} are not these {names}")
         beta, gain = correction_terms(source, len(edges) + 2, args.own, args.without_far, args.gain_only)
         fields = band_fields_fn(metadata, config, edges)
+        if args.gain_only:  # every band's beta is 0: skip the all-pairs band forces at every step
+
+            def correction(x, rm, m):
+                return jnp.zeros_like(x)
+        else:
+
+            def correction(x, rm, m):
+                return jnp.tensordot(beta, fields(x, rm, m), 1)
+
         start = time.perf_counter()
         rollouts = hybrid_rollouts(
-            params, config, metadata, trajectories, [0.0, 1.0], args.group,
-            field=lambda x, rm, m: jnp.tensordot(beta, fields(x, rm, m), 1), gain=gain,
-        )  # fmt: skip
+            params, config, metadata, trajectories, [0.0, 1.0], args.group, field=correction, gain=gain
+        )
         result["correction"] = {
             "beta": np.asarray(beta).tolist(),
             "gain": gain,

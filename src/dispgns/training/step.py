@@ -129,9 +129,9 @@ class TrainConfig:
       early_windows, early_repeats: the windows starting at the first
         ``early_windows`` frames of each trajectory are drawn
         ``early_repeats`` times per epoch (less the few examples an epoch
-        leaves over; 0 and 1, the defaults: every window once). A rollout starts from a trajectory's first frames,
-        where its errors have the longest to grow, and those windows are
-        few. With ``pushforward_steps = k`` the loss's first target is a
+        leaves over; 0 and 1, the defaults: every window once). A rollout
+        starts from a trajectory's first frames, where its errors have the
+        longest to grow, and those windows are few. With ``pushforward_steps = k`` the loss's first target is a
         window's frame ``C + k``: the first ``k`` frames a rollout predicts
         are never targets unless ``k = 0``.
       num_steps: training steps of a full run (2 million in the paper).
@@ -181,10 +181,10 @@ class TrainConfig:
     ema_decay: float = 0.0
 
     def __post_init__(self):
-        once = dict.fromkeys(("batch_size", "num_steps", "log_every", "keep_checkpoints", "unroll_steps"), 1)
+        once = ("batch_size", "num_steps", "log_every", "keep_checkpoints", "unroll_steps", "early_repeats")
+        once = dict.fromkeys(once, 1)
         counts = ("validate_every", "checkpoint_every", "validation_examples", "validation_trajectories")
         counts += ("validation_rollout_frames", "pushforward_steps", "early_windows")
-        once["early_repeats"] = 1
         check_fields(
             self,
             integers={**once, **dict.fromkeys(counts, 0)},
